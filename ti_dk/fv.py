@@ -1,0 +1,182 @@
+"""Finite-volume Dean–Kawasaki (paper eq. 7–9) and its linearised Gaussian version (eq. 10–11)."""
+
+import numpy as np
+import taichi as ti
+
+from . import rng
+from .grid import DIRICHLET, NEUMANN, PERIODIC, Grid, numpy_dtype
+
+
+@ti.data_oriented
+class SPDESolver:
+    r"""Explicit Euler–Maruyama for ``dq = ½∇²q dt + ∇·(√max(q,0) dW)`` on every ensemble member.
+
+    One step is the flux form, eq. (9),
+
+    .. math:: q_I^{n+1} = q_I^n + Δt \sum_a \frac{F_{I+½e_a} - F_{I-½e_a}}{Δx_a},
+
+    with the total face flux of eq. (8),
+
+    .. math:: F_{I-½e_a} = \frac{q_I - q_{I-e_a}}{2Δx_a} + \frac{A(s_{I-e_a}, s_I)}{\sqrt{Δt V_c}} Z,
+              \quad A(s_1, s_2) = \frac{\sqrt{\max(s_1,0)} + \sqrt{\max(s_2,0)}}{2},
+
+    where ``s = q`` for the finite-volume scheme (eq. 7) and ``s = q̄`` for the linearised Gaussian
+    scheme (eq. 11), q̄ obeying the deterministic heat equation (10). ``Z`` is a standard normal
+    keyed on (seed, member, step, face), so a face's noise is the same whoever computes it.
+
+    Boundaries: periodic faces wrap; Neumann faces carry no flux; a Dirichlet face sees a ghost
+    cell at the reservoir density (for q and for q̄).
+    """
+
+    def __init__(self, grid: Grid, dt: float, ensemble: int, seed: int, real=ti.f64, gaussian: bool = False):
+        self.grid, self.dt, self.ensemble, self.real, self.gaussian = grid, dt, ensemble, real, gaussian
+        self.dim = grid.dim
+        self.n = grid.cells
+        self.key = rng.seed_key(seed)
+        faces = tuple(m + 1 for m in self.n)
+        self.q = ti.field(real, shape=(ensemble, *self.n))  # number density q_I [particles / volume]
+        # total flux F (eq. 8) through the lower face of each cell, one component per axis
+        # [particles / (area · time)]; the padded last layer holds the upper boundary faces
+        self.flux = ti.Vector.field(self.dim, real, shape=(ensemble, *faces))
+        if gaussian:
+            self.qbar = ti.field(real, shape=(1, *self.n))  # deterministic density q̄ (eq. 10) [particles / volume]
+            self.flux_bar = ti.Vector.field(self.dim, real, shape=(1, *faces))  # ½∇q̄ on faces [particles / (area · time)]
+        self.mass = ti.field(ti.f64, shape=())  # Σ over members and cells of q V_c after the step [particles]
+        self.q_min = ti.field(real, shape=())  # smallest q over members and cells [particles / volume]
+        self.n_negative = ti.field(ti.i64, shape=())  # cells (over all members) with q < 0
+        self.inflow = ti.field(ti.f64, shape=())  # particles entering through Dirichlet sides this step
+
+    # -- public -------------------------------------------------------------------------
+    def initialize(self, ppc: np.ndarray) -> None:
+        """Set every member (and q̄) to ``ppc`` particles per cell."""
+        q0 = np.broadcast_to(ppc / self.grid.cell_volume, (self.ensemble, *self.n))
+        self.q.from_numpy(np.ascontiguousarray(q0, dtype=numpy_dtype(self.real)))
+        if self.gaussian:
+            self.qbar.from_numpy(np.ascontiguousarray(q0[:1], dtype=numpy_dtype(self.real)))
+
+    def step(self, n: int) -> None:
+        """Advance all members from step ``n`` to ``n + 1``."""
+        self._fluxes(n)
+        self._update()
+
+    def density(self) -> np.ndarray:
+        """Number density of every member, ``(ensemble, *cells)``, float64."""
+        return self.q.to_numpy().astype(np.float64, copy=False)
+
+    def diagnostics(self) -> dict[str, float]:
+        return {
+            "mass": self.mass[None],
+            "min_density": float(self.q_min[None]),
+            "negative_cells": int(self.n_negative[None]),
+            "boundary_inflow": self.inflow[None],
+            "clamped_steps": 0,
+        }
+
+    # -- kernels ------------------------------------------------------------------------
+    @ti.func
+    def _pair(self, f: ti.template(), J, a: ti.template()):
+        """Values of ``f`` left and right of the lower face of cell ``J`` along axis ``a``.
+
+        ``J`` carries the member index first; off-grid neighbours are periodic images or the
+        Dirichlet reservoir density.
+        """
+        n = ti.static(self.n[a])
+        lo, hi = ti.static(self.grid.boundary[a])
+        res_lo, res_hi = ti.static(self.grid.reservoir[a])
+        i = J[a + 1]
+        L = J - ti.Vector.unit(self.dim + 1, a + 1, ti.i32)
+        R = J
+        v = ti.Vector([self.real(0.0), self.real(0.0)])
+        if ti.static(lo == PERIODIC):
+            if i == 0:
+                L[a + 1] = n - 1
+            if i == n:
+                R[a + 1] = 0
+            v = ti.Vector([f[L], f[R]])
+        else:
+            if i == 0:
+                v = ti.Vector([self.real(res_lo), f[R]])
+            elif i == n:
+                v = ti.Vector([f[L], self.real(res_hi)])
+            else:
+                v = ti.Vector([f[L], f[R]])
+        return v
+
+    @ti.func
+    def _is_wall(self, i, a: ti.template()) -> bool:
+        """Whether face index ``i`` along axis ``a`` is a Neumann (no-flux) wall."""
+        lo, hi = ti.static(self.grid.boundary[a])
+        return (lo == NEUMANN and i == 0) or (hi == NEUMANN and i == self.n[a])
+
+    @ti.kernel
+    def _fluxes(self, step: ti.u32):
+        dim = ti.static(self.dim)
+        dt = ti.static(self.dt)
+        noise_scale = ti.static(1.0 / (self.dt * self.grid.cell_volume) ** 0.5)
+        key = ti.math.uvec2(self.key[0], self.key[1])
+        self.inflow[None] = 0.0
+        for J in ti.grouped(self.flux):
+            # one Philox counter per (member, padded cell); its word a drives the face along a.
+            # Periodic faces at index n share the counter of face 0, so both sides agree.
+            lin = ti.u32(0)
+            for a in ti.static(range(dim)):
+                i = J[a + 1]
+                if ti.static(self.grid.boundary[a][0] == PERIODIC):
+                    if i == self.n[a]:
+                        i = 0
+                lin = lin * ti.u32(self.n[a] + 1) + ti.u32(i)
+            bits = rng.philox4x32(ti.math.uvec4(lin, step, ti.u32(J[0]), ti.u32(rng.FACE_NOISE)), key)
+            for a in ti.static(range(dim)):
+                on_grid = True  # the face exists: the other axes' indices are inside the grid
+                for b in ti.static(range(dim)):
+                    if ti.static(b != a):
+                        if J[b + 1] >= self.n[b]:
+                            on_grid = False
+                if on_grid:
+                    h = ti.static(self.grid.dx[a])
+                    F = self.real(0.0)
+                    if not self._is_wall(J[a + 1], a):
+                        qq = self._pair(self.q, J, a)
+                        s = qq
+                        if ti.static(self.gaussian):
+                            J0 = J
+                            J0[0] = 0
+                            s = self._pair(self.qbar, J0, a)
+                            if J[0] == 0:
+                                self.flux_bar[J0][a] = self.real(0.5 / h) * (s[1] - s[0])
+                        amp = self.real(0.5) * (ti.sqrt(ti.max(s[0], self.real(0.0))) + ti.sqrt(ti.max(s[1], self.real(0.0))))
+                        F = self.real(0.5 / h) * (qq[1] - qq[0]) + self.real(noise_scale) * amp * rng.normal(bits[a], self.real)
+                        if ti.static(DIRICHLET in self.grid.boundary[a]):
+                            i = J[a + 1]
+                            area = ti.static(self.grid.face_area[a] * dt)
+                            if i == 0:
+                                self.inflow[None] += -ti.cast(F, ti.f64) * area
+                            elif i == self.n[a]:
+                                self.inflow[None] += ti.cast(F, ti.f64) * area
+                    self.flux[J][a] = F
+
+    @ti.kernel
+    def _update(self):
+        dim = ti.static(self.dim)
+        vol = ti.static(self.grid.cell_volume)
+        self.mass[None] = 0.0
+        self.q_min[None] = self.real(ti.math.inf)
+        self.n_negative[None] = 0
+        for J in ti.grouped(self.q):
+            dq = self.real(0.0)
+            for a in ti.static(range(dim)):
+                up = J + ti.Vector.unit(dim + 1, a + 1, ti.i32)
+                dq += (self.flux[up][a] - self.flux[J][a]) * self.real(1.0 / self.grid.dx[a])
+            qn = self.q[J] + self.real(self.dt) * dq
+            self.q[J] = qn
+            self.mass[None] += ti.cast(qn, ti.f64) * vol
+            ti.atomic_min(self.q_min[None], qn)
+            if qn < 0:
+                self.n_negative[None] += 1
+        if ti.static(self.gaussian):
+            for J in ti.grouped(self.qbar):
+                dq = self.real(0.0)
+                for a in ti.static(range(dim)):
+                    up = J + ti.Vector.unit(dim + 1, a + 1, ti.i32)
+                    dq += (self.flux_bar[up][a] - self.flux_bar[J][a]) * self.real(1.0 / self.grid.dx[a])
+                self.qbar[J] += self.real(self.dt) * dq

@@ -1,0 +1,77 @@
+"""Grid geometry, boundary kinds and index helpers shared by every solver."""
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import taichi as ti
+
+PERIODIC, NEUMANN, DIRICHLET = 0, 1, 2
+_KIND = {"periodic": PERIODIC, "neumann": NEUMANN, "dirichlet": DIRICHLET}
+
+
+@dataclass(frozen=True)
+class Grid:
+    """A uniform Cartesian grid on ``[0, L_0] × … × [0, L_{d-1}]`` (paper §2.2.1).
+
+    ``boundary[a] = (lo, hi)`` holds the boundary kind of each side of axis ``a``;
+    ``reservoir[a]`` the Dirichlet reservoir number density of each side (particles per volume).
+    """
+
+    cells: tuple[int, ...]
+    lengths: tuple[float, ...]
+    boundary: tuple[tuple[int, int], ...]
+    reservoir: tuple[tuple[float, float], ...]
+
+    @classmethod
+    def from_scene(cls, scene) -> "Grid":
+        vol = scene.cell_volume
+        return cls(
+            cells=scene.cells,
+            lengths=scene.lengths,
+            boundary=tuple((_KIND[lo], _KIND[hi]) for lo, hi in scene.boundary),
+            reservoir=tuple((lo / vol, hi / vol) for lo, hi in scene.reservoir_ppc),
+        )
+
+    @property
+    def dim(self) -> int:
+        return len(self.cells)
+
+    @property
+    def dx(self) -> tuple[float, ...]:
+        return tuple(L / n for L, n in zip(self.lengths, self.cells))
+
+    @property
+    def cell_volume(self) -> float:
+        return math.prod(self.dx)
+
+    @property
+    def face_area(self) -> tuple[float, ...]:
+        """Area of a face normal to each axis."""
+        return tuple(self.cell_volume / h for h in self.dx)
+
+    @property
+    def has_dirichlet(self) -> bool:
+        return any(DIRICHLET in sides for sides in self.boundary)
+
+
+def numpy_dtype(real):
+    """The NumPy dtype of a Taichi real type."""
+    return np.float32 if real == ti.f32 else np.float64
+
+
+@ti.func
+def wrap(i, n):
+    """Periodic image of index ``i`` in ``[0, n)`` for ``-n <= i < 2n``."""
+    j = i
+    if j < 0:
+        j += n
+    elif j >= n:
+        j -= n
+    return j
+
+
+@ti.func
+def cell_of(x, h, n):
+    """Index of the cell of width ``h`` holding coordinate ``x``, clamped into ``[0, n)``."""
+    return ti.min(ti.max(ti.cast(ti.floor(x / h), ti.i32), 0), n - 1)

@@ -1,0 +1,270 @@
+"""Independent Brownian particles: sampling from a density, the clamped walk, and binning."""
+import math
+
+import numpy as np
+import taichi as ti
+
+from . import rng
+from .grid import DIRICHLET, NEUMANN, PERIODIC, Grid, cell_of, numpy_dtype
+
+DEAD = 0xFFFFFFFF  # birth word of an absorbed particle
+
+
+@ti.data_oriented
+class ParticleSolver:
+    r"""Brownian walkers with D = ½ for every ensemble member (paper §3, the particle model).
+
+    One step moves each particle by
+
+    .. math:: x_a \leftarrow x_a + \operatorname{clamp}(\sqrt{Δt}\, Z_a, -Δx_a, Δx_a),
+
+    so a particle crosses at most one cell per step. ``Z_a`` is keyed on (seed, member, step,
+    particle id), so a particle's path never depends on which thread moves it. Walls: periodic
+    sides wrap, Neumann sides reflect, Dirichlet sides absorb what leaves and inject what a
+    reservoir ghost layer at the reservoir density (sampled afresh each step) walks in.
+
+    Particles of member ``e`` occupy slots ``[0, n_alive[e])``; with Dirichlet sides a particle
+    carries an id (slot at birth, birth step + 1) because absorption compacts the slots.
+    """
+
+    def __init__(self, grid: Grid, dt: float, ensemble: int, seed: int, real, capacity: int):
+        self.grid, self.dt, self.ensemble, self.real, self.capacity = grid, dt, ensemble, real, capacity
+        self.dim = grid.dim
+        self.n = grid.cells
+        self.key = rng.seed_key(seed)
+        self.x = ti.Vector.field(self.dim, real, shape=(ensemble, capacity))  # particle positions [length]
+        self.n_alive = ti.field(ti.i32, shape=ensemble)  # live particles of each member
+        self.count = ti.field(ti.i32, shape=(ensemble, *self.n))  # particles per cell (after bin())
+        self.clamped = ti.field(ti.i64, shape=())  # axis steps clamped to ±Δx in the last step
+        self.inflow = ti.field(ti.i64, shape=())  # particles injected minus absorbed in the last step
+        self.overflow = ti.field(ti.i32, shape=())  # set when a member needed more than `capacity` slots
+        if grid.has_dirichlet:
+            self.pid = ti.Vector.field(2, ti.u32, shape=(ensemble, capacity))  # (slot at birth, birth step + 1)
+            self.ppc_max = max(max(r) for r in grid.reservoir) * grid.cell_volume
+            # reservoir ghost layer beyond each side of axis a: one cell thick
+            self.layers = [tuple(1 if b == a else m for b, m in enumerate(self.n)) for a in range(self.dim)]
+            self.cross = max(math.prod(layer) for layer in self.layers)
+
+    @staticmethod
+    def capacity_for(grid: Grid, ppc: np.ndarray) -> int:
+        """Slots per member: the most particles sampling ``ppc`` can give, with room for reservoirs."""
+        cap = int(np.ceil(ppc).sum())
+        if grid.has_dirichlet:
+            res = max(max(r) for r in grid.reservoir) * grid.cell_volume * math.prod(grid.cells)
+            cap = max(cap, int(res))
+            cap = int(1.25 * cap + 10 * math.sqrt(cap) + 64)
+        return max(cap, 1)
+
+    # -- public -------------------------------------------------------------------------
+    def initialize(self, ppc: np.ndarray, exact_uniform: bool = False) -> None:
+        """Sample particles: ``ppc`` per cell as ℓ plus one with probability α (mean ℓ + α), uniform
+        in the cell; or, with ``exact_uniform``, N = Σ ppc particles uniform in the whole domain
+        (the exact equilibrium of a closed box)."""
+        if exact_uniform:
+            self._place_uniform(int(round(ppc.sum())))
+        else:
+            f = ti.field(ti.f64, shape=self.n)
+            f.from_numpy(np.ascontiguousarray(ppc, dtype=np.float64))
+            self._sample(f)
+        if self.grid.has_dirichlet:
+            self._init_ids()
+        self._check_overflow()
+
+    def step(self, n: int) -> None:
+        """Walk every particle from step ``n`` to ``n + 1``."""
+        self._walk(n)
+        if self.grid.has_dirichlet:
+            self._exchange(n)
+            self._check_overflow()
+
+    def density(self) -> np.ndarray:
+        """Number density of every member, ``(ensemble, *cells)``: counts / V_c, float64."""
+        self._bin()
+        return self.count.to_numpy().astype(np.float64) / self.grid.cell_volume
+
+    def diagnostics(self) -> dict[str, float]:
+        return {
+            "mass": float(self.n_alive.to_numpy().sum(dtype=np.int64)),
+            "min_density": math.nan,  # not binned every step; counts are never negative
+            "negative_cells": 0,
+            "boundary_inflow": float(self.inflow[None]),
+            "clamped_steps": int(self.clamped[None]),
+        }
+
+    def _check_overflow(self) -> None:
+        if self.overflow[None]:
+            raise OverflowError(
+                f"a member needed more than {self.capacity} particle slots: lower the densities or the reservoir_ppc"
+            )
+
+    # -- numerics (ti.func) -------------------------------------------------------------
+    @ti.func
+    def _move(self, x, e, id0, birth, step):
+        """One clamped Brownian step of the particle (id0, birth) of member ``e``; applies the walls.
+
+        Returns the new position, whether it is still in the domain, and the number of clamped axes.
+        """
+        bits = rng.philox4x32(ti.math.uvec4(id0, step, ti.u32(e), ti.u32(rng.WALK) | (birth << rng.PURPOSE_BITS)),
+                              ti.math.uvec2(self.key[0], self.key[1]))
+        y = x
+        alive = True
+        clamped = 0
+        for a in ti.static(range(self.dim)):
+            h = ti.static(self.grid.dx[a])
+            L = ti.static(self.grid.lengths[a])
+            lo, hi = ti.static(self.grid.boundary[a])
+            d = self.real(self.dt**0.5) * rng.normal(bits[a], self.real)
+            if ti.abs(d) > h:
+                d = ti.math.clamp(d, -self.real(h), self.real(h))
+                clamped += 1
+            ya = y[a] + d
+            if ti.static(lo == PERIODIC):
+                if ya < 0:
+                    ya += self.real(L)
+                elif ya >= self.real(L):
+                    ya -= self.real(L)
+            else:
+                if ya < 0:
+                    if ti.static(lo == NEUMANN):
+                        ya = -ya
+                    else:
+                        alive = False
+                elif ya > self.real(L):
+                    if ti.static(hi == NEUMANN):
+                        ya = self.real(2 * L) - ya
+                    else:
+                        alive = False
+            y[a] = ya
+        return y, alive, clamped
+
+    @ti.func
+    def _in_cell(self, C, bits):
+        """A uniform position in cell ``C`` (integer vector, may lie in a ghost layer)."""
+        y = ti.Vector.zero(self.real, self.dim)
+        for a in ti.static(range(self.dim)):
+            y[a] = (self.real(C[a]) + rng.uniform(bits[a], self.real)) * self.real(self.grid.dx[a])
+        return y
+
+    @ti.func
+    def _how_many(self, lam, bits_word):
+        """ℓ particles plus one more with probability α, for a mean of λ = ℓ + α (paper §3)."""
+        ell = ti.floor(lam)
+        extra = 0
+        if rng.uniform(bits_word, ti.f64) < lam - ell:
+            extra = 1
+        return ti.cast(ell, ti.i32) + extra
+
+    # -- kernels ------------------------------------------------------------------------
+    @ti.kernel
+    def _sample(self, ppc: ti.template()):
+        key = ti.math.uvec2(self.key[0], self.key[1])
+        self.overflow[None] = 0
+        for e in range(self.ensemble):
+            k = 0
+            for C in ti.grouped(ti.ndrange(*self.n)):  # serial within a member: slots in cell order
+                lin = ti.u32(0)
+                for a in ti.static(range(self.dim)):
+                    lin = lin * ti.u32(self.n[a]) + ti.u32(C[a])
+                bits = rng.philox4x32(ti.math.uvec4(lin, 0, ti.u32(e), ti.u32(rng.SAMPLE_COUNT)), key)
+                m = self._how_many(ppc[C], bits[0])
+                for _ in range(m):
+                    if k < self.capacity:
+                        r = rng.philox4x32(ti.math.uvec4(ti.u32(k), 0, ti.u32(e), ti.u32(rng.SAMPLE_POSITION)), key)
+                        self.x[e, k] = self._in_cell(C, r)
+                    k += 1
+            if k > self.capacity:
+                self.overflow[None] = 1
+            self.n_alive[e] = ti.min(k, self.capacity)
+
+    @ti.kernel
+    def _place_uniform(self, total: ti.i32):
+        key = ti.math.uvec2(self.key[0], self.key[1])
+        self.overflow[None] = 0
+        if total > self.capacity:
+            self.overflow[None] = 1
+        for e, k in ti.ndrange(self.ensemble, self.capacity):
+            if k < total:
+                r = rng.philox4x32(ti.math.uvec4(ti.u32(k), 0, ti.u32(e), ti.u32(rng.SAMPLE_POSITION)), key)
+                y = ti.Vector.zero(self.real, self.dim)
+                for a in ti.static(range(self.dim)):
+                    y[a] = rng.uniform(r[a], self.real) * self.real(self.grid.lengths[a])
+                self.x[e, k] = y
+        for e in range(self.ensemble):
+            self.n_alive[e] = ti.min(total, self.capacity)
+
+    @ti.kernel
+    def _init_ids(self):
+        for e, k in ti.ndrange(self.ensemble, self.capacity):
+            self.pid[e, k] = ti.math.uvec2(ti.u32(k), 0)
+
+    @ti.kernel
+    def _walk(self, step: ti.u32):
+        self.clamped[None] = 0
+        self.inflow[None] = 0
+        for e, p in ti.ndrange(self.ensemble, self.capacity):
+            if p < self.n_alive[e]:
+                id0, birth = ti.u32(p), ti.u32(0)
+                if ti.static(self.grid.has_dirichlet):
+                    id0, birth = self.pid[e, p][0], self.pid[e, p][1]
+                y, alive, clamped = self._move(self.x[e, p], e, id0, birth, step)
+                self.x[e, p] = y
+                self.clamped[None] += clamped
+                if ti.static(self.grid.has_dirichlet):
+                    if not alive:
+                        self.pid[e, p][1] = ti.u32(DEAD)
+                        self.inflow[None] -= 1
+
+    @ti.kernel
+    def _exchange(self, step: ti.u32):
+        """Dirichlet sides: drop absorbed particles (keeping order) and inject reservoir walkers."""
+        key = ti.math.uvec2(self.key[0], self.key[1])
+        K = ti.static(int(self.ppc_max) + 1)  # most particles a reservoir cell can hold
+        for e in range(self.ensemble):
+            j = 0
+            for p in range(self.n_alive[e]):
+                if self.pid[e, p][1] != ti.u32(DEAD):
+                    self.x[e, j] = self.x[e, p]
+                    self.pid[e, j] = self.pid[e, p]
+                    j += 1
+            for a in ti.static(range(self.dim)):
+                for side in ti.static(range(2)):
+                    if ti.static(self.grid.boundary[a][side] == DIRICHLET):
+                        lam = ti.static(self.grid.reservoir[a][side] * self.grid.cell_volume)
+                        layer = ti.static(self.layers[a])
+                        tag = ti.static((2 * a + side) * self.cross)
+                        for G in ti.grouped(ti.ndrange(*layer)):
+                            C = G
+                            C[a] = -1 if side == 0 else self.n[a]
+                            lin = ti.u32(0)
+                            for b in ti.static(range(self.dim)):
+                                lin = lin * ti.u32(layer[b]) + ti.u32(G[b])
+                            lin += ti.u32(tag)
+                            bits = rng.philox4x32(ti.math.uvec4(lin, step, ti.u32(e), ti.u32(rng.SAMPLE_COUNT)), key)
+                            m = self._how_many(lam, bits[0])
+                            for k in range(m):
+                                id0 = lin * ti.u32(K) + ti.u32(k)
+                                r = rng.philox4x32(
+                                    ti.math.uvec4(id0, step, ti.u32(e), ti.u32(rng.SAMPLE_POSITION)), key)
+                                y, alive, clamped = self._move(self._in_cell(C, r), e, id0, step + 1, step)
+                                self.clamped[None] += clamped
+                                if alive:
+                                    if j < self.capacity:
+                                        self.x[e, j] = y
+                                        self.pid[e, j] = ti.math.uvec2(id0, step + 1)
+                                        j += 1
+                                        self.inflow[None] += 1
+                                    else:
+                                        self.overflow[None] = 1
+            self.n_alive[e] = j
+
+    @ti.kernel
+    def _bin(self):
+        for J in ti.grouped(self.count):
+            self.count[J] = 0
+        for e, p in ti.ndrange(self.ensemble, self.capacity):
+            if p < self.n_alive[e]:
+                J = ti.Vector.zero(ti.i32, self.dim + 1)
+                J[0] = e
+                for a in ti.static(range(self.dim)):
+                    J[a + 1] = cell_of(self.x[e, p][a], self.real(self.grid.dx[a]), self.n[a])
+                self.count[J] += 1
