@@ -167,12 +167,12 @@ class SPDESolver:
             for a in ti.static(range(dim)):
                 up = J + ti.Vector.unit(dim + 1, a + 1, ti.i32)
                 dq += (self.flux[up][a] - self.flux[J][a]) * self.real(1.0 / self.grid.dx[a])
-            qn = self.q[J] + self.real(self.dt) * dq
-            self.q[J] = qn
+            self.q[J] += self.real(self.dt) * dq
+        for J in ti.grouped(self.q):  # a loop of its own, so the reductions stay thread-local
+            qn = self.q[J]
             self.mass[None] += ti.cast(qn, ti.f64) * vol
             ti.atomic_min(self.q_min[None], qn)
-            if qn < 0:
-                self.n_negative[None] += 1
+            self.n_negative[None] += ti.cast(qn < 0, ti.i64)
         if ti.static(self.gaussian):
             for J in ti.grouped(self.qbar):
                 dq = self.real(0.0)

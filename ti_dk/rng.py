@@ -47,12 +47,12 @@ def philox4x32(ctr: ti.math.uvec4, key: ti.math.uvec2) -> ti.math.uvec4:
 
 @ti.func
 def uniform(bits: ti.u32, T: ti.template()):
-    """A uniform number in the open interval (0, 1) of type ``T`` (24 bits for f32, 32 for f64)."""
+    """A uniform number in the open interval (0, 1) of type ``T`` (23 bits for f32, 32 for f64)."""
     u = T(0.0)
     if ti.static(T == ti.f32):
-        u = (T(bits >> 8) + T(0.5)) * T(2.0**-24)
+        u = (T(ti.cast(bits >> 9, ti.i32)) + T(0.5)) * T(2.0**-23)  # 1 - 2**-24 is the largest f32 below 1
     else:
-        u = (T(bits) + T(0.5)) * T(2.0**-32)
+        u = (T(ti.cast(bits, ti.i64)) + T(0.5)) * T(2.0**-32)
     return u
 
 
@@ -63,7 +63,8 @@ def normal(bits: ti.u32, T: ti.template()):
     The top bit gives the sign and the low 31 bits a probability p ∈ (0, ½), so both tails reach
     |z| ≈ 6.4 symmetrically and no precision is lost near p = 1.
     """
-    p = (T(bits & ti.u32(0x7FFFFFFF)) + T(0.5)) * T(2.0**-32)
+    # signed integer → float conversion is one instruction; unsigned is several on x86
+    p = (T(ti.cast(bits & ti.u32(0x7FFFFFFF), ti.i32)) + T(0.5)) * T(2.0**-32)
     z = T(0.0)
     if p < T(0.02425):
         r = ti.sqrt(T(-2.0) * ti.log(p))

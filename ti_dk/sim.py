@@ -1,6 +1,7 @@
 """The run controller: Taichi start-up, the time loop, statistics cadence, output and diagnostics."""
 from __future__ import annotations
 
+import ctypes
 import math
 import sys
 import time
@@ -36,10 +37,20 @@ def init(arch: str = "cpu", threads: int | None = None) -> None:
         raise ConfigError(f"backend '{arch}' is not supported: use --arch cpu or --arch cuda")
     if threads is not None and threads < 1:
         raise ConfigError(f"threads = {threads}: give at least 1 CPU thread")
+    if arch == "cuda" and not _cuda_driver_present():
+        raise ConfigError("the 'cuda' backend is not available on this machine (no CUDA driver): run with --arch cpu")
     kw = {"cpu_max_num_threads": threads} if threads else {}
     ti.init(arch=ARCHS[arch], default_fp=ti.f64, offline_cache=True, log_level=ti.WARN, **kw)
     if ti.lang.impl.current_cfg().arch != ARCHS[arch]:
         raise ConfigError(f"the '{arch}' backend is not available on this machine: run with --arch cpu")
+
+
+def _cuda_driver_present() -> bool:
+    try:
+        ctypes.CDLL("libcuda.so.1")
+    except OSError:
+        return False
+    return True
 
 
 def _initialized() -> bool:

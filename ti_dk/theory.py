@@ -37,6 +37,20 @@ def _box_gauss_antiderivative(x, s):
     return x * Phi + s * phi
 
 
+def poisson_binomial_pmf(p: np.ndarray, repeats: np.ndarray | None = None) -> np.ndarray:
+    """Exact PMF of a sum of independent Bernoulli(p_j) (each repeated ``repeats[j]`` times), by
+    convolving the binomial PMFs of the groups."""
+    repeats = np.ones(len(p), dtype=int) if repeats is None else np.asarray(repeats, dtype=int)
+    pmf = np.ones(1)
+    for pj, r in zip(p, repeats):
+        if r == 0:
+            continue
+        k = np.arange(r + 1)
+        binom = np.array([math.comb(r, int(i)) for i in k], dtype=np.float64) * pj**k * (1 - pj) ** (r - k)
+        pmf = np.convolve(pmf, binom)
+    return pmf
+
+
 def cell_transition(cells: int, length: float, t: float, images: int = 3) -> np.ndarray:
     """P[j, i]: probability that a Brownian particle (D = ½, variance t) started uniformly in cell j
     of a periodic 1D domain ends in cell i. Exact: (G(d+h) − 2G(d) + G(d−h))/h, summed over images."""

@@ -1,0 +1,76 @@
+"""Scene loading, flat overrides and the one-line errors for bad input."""
+import warnings
+
+import pytest
+
+from ti_dk import ConfigError, available_scenes, load_scene
+from ti_dk.config import ClampWarning, parse_value
+
+
+def test_scenes_load_and_override():
+    assert {"equilibrium1d", "void1d", "ellipse2d"} <= set(available_scenes())
+    s = load_scene("void1d", ppc=5, C=0.05, method="gaussian", ensemble=7, seed=3)
+    assert s.params["ppc"] == 5 and s.C == 0.05 and s.method == "gaussian" and s.ensemble == 7
+    assert s.dim == 1 and s.cells == (100,) and s.boundary == (("periodic", "periodic"),)
+    assert s.dt == pytest.approx(0.05 * 1e-4)
+    assert s.n_steps == round(0.01 / s.dt)
+    assert s.output_steps[-1] == s.n_steps
+
+
+def test_output_times_past_t_end_are_dropped():
+    s = load_scene("void1d", t_end=0.0025)
+    assert s.output_times == (0.001, 0.0025)
+
+
+def test_boundaries_per_axis_and_side():
+    s = load_scene("ellipse2d", boundary=[["dirichlet", "neumann"], "periodic"], reservoir_ppc=[[4.0, 0.0], 0.0])
+    assert s.boundary == (("dirichlet", "neumann"), ("periodic", "periodic"))
+    assert s.reservoir_ppc == ((4.0, 0.0), (0.0, 0.0))
+
+
+@pytest.mark.parametrize(
+    "name, overrides, message",
+    [
+        ("nope", {}, "unknown scene 'nope'"),
+        ("void1d", {"bogus": 1}, "unknown key 'bogus'"),
+        ("void1d", {"ensemble": "many"}, "ensemble = 'many': give a whole number"),
+        ("void1d", {"ensemble": 0}, "ensemble = 0: give a whole number >= 1"),
+        ("void1d", {"cells": [0]}, "give a whole number >= 1"),
+        ("void1d", {"cells": [1]}, "every axis needs at least 2 cells"),
+        ("void1d", {"cells": [4, 4, 4, 4]}, "give 1, 2 or 3 cell counts"),
+        ("void1d", {"lengths": [-1.0]}, "lengths = -1.0"),
+        ("void1d", {"C": 1.2}, "beyond the explicit stability limit C < 1"),
+        ("ellipse2d", {"C": 0.5}, "beyond the explicit stability limit C < 0.5"),
+        ("void1d", {"method": "magic"}, "method = 'magic': use one of fv, gaussian, particle"),
+        ("void1d", {"boundary": "sticky"}, "boundary 'sticky' on axis 0"),
+        ("void1d", {"boundary": [["periodic", "neumann"]]}, "periodic on one side only"),
+        ("void1d", {"t_end": -1.0}, "t_end = -1.0"),
+        ("void1d", {"precision": "f16"}, "precision = 'f16'"),
+    ],
+)
+def test_bad_input_says_what_to_change(name, overrides, message):
+    with pytest.raises(ConfigError) as err:
+        load_scene(name, **overrides)
+    assert message in str(err.value)
+    assert "\n" not in str(err.value)
+
+
+def test_unstable_override_and_clamp_warning():
+    assert load_scene("void1d", C=1.2, allow_unstable=True).C == 1.2
+    with pytest.warns(ClampWarning, match="clamped"):
+        load_scene("void1d", C=0.2, method="particle")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        load_scene("void1d", C=0.0625, method="particle")
+
+
+def test_anisotropic_stability_limit():
+    # dx = 1/16, dy = 1/32: dt = C/32², Σ dt/dx_a² = C (1/4 + 1) < 1 needs C < 0.8
+    load_scene("ellipse2d", cells=[16, 32], C=0.79)
+    with pytest.raises(ConfigError, match="C < 0.8"):
+        load_scene("ellipse2d", cells=[16, 32], C=0.81)
+
+
+def test_parse_value():
+    assert parse_value("[64, 64]") == [64, 64]
+    assert parse_value("0.5") == 0.5 and parse_value("true") is True and parse_value("fv") == "fv"

@@ -1,0 +1,98 @@
+"""Particles against exact answers: Binomial counts at equilibrium, Poisson-binomial counts for the
+void, exact particle balance with Dirichlet reservoirs."""
+import numpy as np
+import pytest
+import taichi as ti
+
+from ti_dk import load_scene, run, theory
+from ti_dk.grid import Grid
+from ti_dk.particles import ParticleSolver
+
+from .conftest import sampling_se
+
+KEYS = ("mean", "variance", "skewness", "kurtosis")
+
+
+def _check(counts_stats, exact, se, cells, z_max=5.0):
+    for k in KEYS:
+        z = (counts_stats[k][cells] - exact[k][cells]) / se[k][cells]
+        assert np.all(np.abs(z) < z_max), (k, z.max(), z.min())
+        assert abs(z.mean()) < z_max / np.sqrt(z.size) + 0.1, (k, z.mean())
+
+
+def _as_counts(stats, row, vol):
+    return {"mean": stats.mean[row] * vol, "variance": stats.variance[row] * vol**2,
+            "skewness": stats.skewness[row], "kurtosis": stats.kurtosis[row]}
+
+
+def test_equilibrium_counts_are_binomial():
+    scene = load_scene("equilibrium1d", method="particle", particle_init="exact_uniform", ppc=5, ensemble=3000,
+                       t_equil=None, t_end=0.002, output_times=[0.0, 0.002], histogram=None)
+    res = run(scene)
+    N, M = 5 * 100, 100
+    b = theory.binomial_moments(N, 1 / M)
+    pmf = theory.poisson_binomial_pmf(np.array([1 / M]), np.array([N]))
+    se = sampling_se(pmf, scene.ensemble)
+    exact = {k: np.full(M, b[k]) for k in KEYS}
+    ses = {k: np.full(M, se[k]) for k in KEYS}
+    for row in range(2):
+        _check(_as_counts(res.stats, row, res.cell_volume), exact, ses, slice(None))
+    assert res.diagnostics["mass"][-1] == N * scene.ensemble
+
+
+def test_void_counts_are_poisson_binomial():
+    scene = load_scene("void1d", method="particle", ensemble=1500, t_end=0.0025, output_times=[0.0005, 0.0025])
+    res = run(scene)
+    ppc0 = np.where(np.abs((np.arange(100) + 0.5) / 100 - 0.5) <= 0.25, 0, 20)
+    P_all = {t: theory.cell_transition(100, 1.0, t) for t in res.times}
+    for row, t in enumerate(res.times):
+        exact = theory.particle_counts_periodic1d(ppc0, 1.0, t)
+        P = P_all[t]
+        se = {k: np.zeros(100) for k in KEYS}
+        pmfs = [theory.poisson_binomial_pmf(P[:, i], ppc0) for i in range(100)]
+        for i, pmf in enumerate(pmfs):
+            for k, v in sampling_se(pmf, scene.ensemble, replicas=200, seed=i).items():
+                se[k][i] = v
+        # the PMF route and the cumulant route to the exact moments agree
+        m = np.array([(np.arange(len(p)) * p).sum() for p in pmfs])
+        assert np.allclose(m, exact["mean"])
+        # low-density cells (the interesting ones) with at least 0.5 particles on average
+        cells = exact["mean"] > 0.5
+        assert cells.sum() > 50 and (exact["mean"][cells] < 5).any()
+        _check(_as_counts(res.stats, row, res.cell_volume), exact, se, cells)
+
+
+def test_walk_is_reproducible_and_seeded():
+    scene = load_scene("void1d", method="particle", ensemble=20, t_end=0.0002)
+    a, b = run(scene), run(scene)
+    c = run(load_scene("void1d", method="particle", ensemble=20, t_end=0.0002, seed=2))
+    assert np.array_equal(a.final_density, b.final_density)
+    assert not np.array_equal(a.final_density, c.final_density)
+
+
+@pytest.mark.parametrize("boundary", ["neumann", [["dirichlet", "dirichlet"]]], ids=["neumann", "dirichlet"])
+def test_walls_and_reservoirs(boundary):
+    scene = load_scene("equilibrium1d", method="particle", cells=[20], boundary=boundary, reservoir_ppc=6.0,
+                       ppc=2, C=0.25, ensemble=200)
+    grid = Grid.from_scene(scene)
+    ppc = np.full(20, 2.5)
+    s = ParticleSolver(grid, scene.dt, scene.ensemble, 4, ti.f64, ParticleSolver.capacity_for(grid, ppc))
+    s.initialize(ppc)
+    mass = [s.diagnostics()["mass"]]
+    inflow, clamped = [], 0
+    for n in range(400):
+        s.step(n)
+        d = s.diagnostics()
+        mass.append(d["mass"])
+        inflow.append(d["boundary_inflow"])
+        clamped += d["clamped_steps"]
+    x = s.x.to_numpy()[:, :, 0]
+    alive = np.arange(x.shape[1])[None, :] < s.n_alive.to_numpy()[:, None]
+    assert np.all((x[alive] >= 0) & (x[alive] <= 1))
+    assert np.array_equal(np.diff(mass), inflow)  # every particle accounted for, exactly
+    assert clamped > 0  # C = 0.25 clamps ~5 % of steps: counted
+    if boundary == "neumann":
+        assert not any(inflow)
+    else:
+        # 400 steps of dt = 0.25/400 is t = 0.25: the profile has filled towards the reservoir's 6
+        assert 4.5 < mass[-1] / (20 * scene.ensemble) < 6.5
