@@ -12,7 +12,7 @@ import inspect
 import math
 import sys
 import warnings
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -22,6 +22,7 @@ else:  # pragma: no cover - exercised on Python 3.10 only
     import tomli as tomllib
 
 from . import initial
+from .grid import Grid
 
 SCENE_DIR = Path(__file__).resolve().parent.parent / "scenes"
 METHODS = ("fv", "gaussian", "particle")
@@ -72,16 +73,20 @@ class Scene:
 
     # -- derived geometry and time stepping ---------------------------------------------
     @property
+    def grid(self) -> Grid:
+        return Grid.from_scene(self)
+
+    @property
     def dim(self) -> int:
-        return len(self.cells)
+        return self.grid.dim
 
     @property
     def dx(self) -> tuple[float, ...]:
-        return tuple(L / n for L, n in zip(self.lengths, self.cells))
+        return self.grid.dx
 
     @property
     def cell_volume(self) -> float:
-        return math.prod(self.dx)
+        return self.grid.cell_volume
 
     @property
     def dt(self) -> float:
@@ -210,10 +215,9 @@ def make_scene(flat: dict[str, Any]) -> Scene:
         if (lo == "periodic") != (hi == "periodic"):
             raise ConfigError(f"axis {axis} is periodic on one side only: make both sides periodic or neither")
     reservoir = _per_side("reservoir_ppc", flat.get("reservoir_ppc", 0.0), dim, float)
-    for (klo, khi), (rlo, rhi) in zip(boundary, reservoir):
-        for kind, r in ((klo, rlo), (khi, rhi)):
-            if r < 0 or not math.isfinite(r):
-                raise ConfigError(f"reservoir_ppc = {r}: give a finite density >= 0 particles per cell")
+    for r in (r for sides in reservoir for r in sides):
+        if r < 0:
+            raise ConfigError(f"reservoir_ppc = {r}: give a density >= 0 particles per cell")
 
     kw: dict[str, Any] = dict(
         name=str(flat.get("name", ic_name)),

@@ -33,6 +33,9 @@ class SPDESolver:
         self.dim = grid.dim
         self.n = grid.cells
         self.key = rng.seed_key(seed)
+        self.noise_scale = 1.0 / (dt * grid.cell_volume) ** 0.5  # 1/√(Δt V_c) of eq. (7)
+        # the layer of upper boundary faces along each axis, member index first
+        self.upper_layer = [(ensemble, *(1 if b == a else m for b, m in enumerate(self.n))) for a in range(self.dim)]
         faces = tuple(m + 1 for m in self.n)
         self.q = ti.field(real, shape=(ensemble, *self.n))  # number density q_I [particles / volume]
         # total flux F (eq. 8) through the lower face of each cell, one component per axis
@@ -90,8 +93,6 @@ class SPDESolver:
         if ti.static(lo == PERIODIC):
             if i == 0:
                 L[a + 1] = n - 1
-            if i == n:
-                R[a + 1] = 0
             v = ti.Vector([f[L], f[R]])
         else:
             if i == 0:
@@ -108,66 +109,82 @@ class SPDESolver:
         lo, hi = ti.static(self.grid.boundary[a])
         return (lo == NEUMANN and i == 0) or (hi == NEUMANN and i == self.n[a])
 
+    @ti.func
+    def _face_noise(self, J, step):
+        """Four normal-driving words for the lower faces of cell ``J`` (word a: the face along a).
+
+        One Philox counter per (member, cell), numbered on the padded grid so that the upper
+        boundary faces of non-periodic axes get counters of their own.
+        """
+        lin = ti.u32(0)
+        for a in ti.static(range(self.dim)):
+            lin = lin * ti.u32(self.n[a] + 1) + ti.u32(J[a + 1])
+        return rng.philox4x32(ti.math.uvec4(lin, step, ti.u32(J[0]), ti.u32(rng.FACE_NOISE)),
+                              ti.math.uvec2(self.key[0], self.key[1]))
+
+    @ti.func
+    def _face_flux(self, J, a: ti.template(), bits):
+        """Total flux F (eq. 8) through the lower face of cell ``J`` along axis ``a``."""
+        h = ti.static(self.grid.dx[a])
+        F = self.real(0.0)
+        if not self._is_wall(J[a + 1], a):
+            qq = self._pair(self.q, J, a)
+            s = qq
+            if ti.static(self.gaussian):
+                J0 = J
+                J0[0] = 0
+                s = self._pair(self.qbar, J0, a)
+                if J[0] == 0:
+                    self.flux_bar[J0][a] = self.real(0.5 / h) * (s[1] - s[0])
+            amp = self.real(0.5) * (ti.sqrt(ti.max(s[0], self.real(0.0))) + ti.sqrt(ti.max(s[1], self.real(0.0))))
+            F = self.real(0.5 / h) * (qq[1] - qq[0]) + self.real(self.noise_scale) * amp * rng.normal(bits, self.real)
+            if ti.static(DIRICHLET in self.grid.boundary[a]):
+                area = ti.static(self.grid.face_area[a] * self.dt)
+                if J[a + 1] == 0:
+                    self.inflow[None] += -ti.cast(F, ti.f64) * area
+                elif J[a + 1] == self.n[a]:
+                    self.inflow[None] += ti.cast(F, ti.f64) * area
+        return F
+
     @ti.kernel
     def _fluxes(self, step: ti.u32):
-        dim = ti.static(self.dim)
-        dt = ti.static(self.dt)
-        noise_scale = ti.static(1.0 / (self.dt * self.grid.cell_volume) ** 0.5)
-        key = ti.math.uvec2(self.key[0], self.key[1])
         self.inflow[None] = 0.0
-        for J in ti.grouped(self.flux):
-            # one Philox counter per (member, padded cell); its word a drives the face along a.
-            # Periodic faces at index n share the counter of face 0, so both sides agree.
-            lin = ti.u32(0)
-            for a in ti.static(range(dim)):
-                i = J[a + 1]
-                if ti.static(self.grid.boundary[a][0] == PERIODIC):
-                    if i == self.n[a]:
-                        i = 0
-                lin = lin * ti.u32(self.n[a] + 1) + ti.u32(i)
-            bits = rng.philox4x32(ti.math.uvec4(lin, step, ti.u32(J[0]), ti.u32(rng.FACE_NOISE)), key)
-            for a in ti.static(range(dim)):
-                on_grid = True  # the face exists: the other axes' indices are inside the grid
-                for b in ti.static(range(dim)):
-                    if ti.static(b != a):
-                        if J[b + 1] >= self.n[b]:
-                            on_grid = False
-                if on_grid:
-                    h = ti.static(self.grid.dx[a])
-                    F = self.real(0.0)
-                    if not self._is_wall(J[a + 1], a):
-                        qq = self._pair(self.q, J, a)
-                        s = qq
-                        if ti.static(self.gaussian):
-                            J0 = J
-                            J0[0] = 0
-                            s = self._pair(self.qbar, J0, a)
-                            if J[0] == 0:
-                                self.flux_bar[J0][a] = self.real(0.5 / h) * (s[1] - s[0])
-                        amp = self.real(0.5) * (ti.sqrt(ti.max(s[0], self.real(0.0))) + ti.sqrt(ti.max(s[1], self.real(0.0))))
-                        F = self.real(0.5 / h) * (qq[1] - qq[0]) + self.real(noise_scale) * amp * rng.normal(bits[a], self.real)
-                        if ti.static(DIRICHLET in self.grid.boundary[a]):
-                            i = J[a + 1]
-                            area = ti.static(self.grid.face_area[a] * dt)
-                            if i == 0:
-                                self.inflow[None] += -ti.cast(F, ti.f64) * area
-                            elif i == self.n[a]:
-                                self.inflow[None] += ti.cast(F, ti.f64) * area
-                    self.flux[J][a] = F
+        for J in ti.grouped(self.q):  # the lower face of every cell along every axis
+            bits = self._face_noise(J, step)
+            for a in ti.static(range(self.dim)):
+                self.flux[J][a] = self._face_flux(J, a, bits[a])
+        for a in ti.static(range(self.dim)):  # upper boundary faces (periodic ones are face 0)
+            if ti.static(self.grid.boundary[a][1] != PERIODIC):
+                for K in ti.grouped(ti.ndrange(*self.upper_layer[a])):
+                    J = K
+                    J[a + 1] = self.n[a]
+                    self.flux[J][a] = self._face_flux(J, a, self._face_noise(J, step)[a])
+
+    @ti.func
+    def _upper(self, J, a: ti.template()):
+        """Index of the upper face of cell ``J`` along ``a`` (the periodic image of face n is face 0)."""
+        up = J + ti.Vector.unit(self.dim + 1, a + 1, ti.i32)
+        if ti.static(self.grid.boundary[a][1] == PERIODIC):
+            if up[a + 1] == self.n[a]:
+                up[a + 1] = 0
+        return up
+
+    @ti.func
+    def _divergence(self, flux: ti.template(), J):
+        """Σ_a (F_{J+½e_a} − F_{J−½e_a}) / Δx_a: the right-hand side of eq. (9) (or of eq. 10 for q̄)."""
+        dq = self.real(0.0)
+        for a in ti.static(range(self.dim)):
+            dq += (flux[self._upper(J, a)][a] - flux[J][a]) * self.real(1.0 / self.grid.dx[a])
+        return dq
 
     @ti.kernel
     def _update(self):
-        dim = ti.static(self.dim)
         vol = ti.static(self.grid.cell_volume)
         self.mass[None] = 0.0
         self.q_min[None] = self.real(ti.math.inf)
         self.n_negative[None] = 0
         for J in ti.grouped(self.q):
-            dq = self.real(0.0)
-            for a in ti.static(range(dim)):
-                up = J + ti.Vector.unit(dim + 1, a + 1, ti.i32)
-                dq += (self.flux[up][a] - self.flux[J][a]) * self.real(1.0 / self.grid.dx[a])
-            self.q[J] += self.real(self.dt) * dq
+            self.q[J] += self.real(self.dt) * self._divergence(self.flux, J)
         for J in ti.grouped(self.q):  # a loop of its own, so the reductions stay thread-local
             qn = self.q[J]
             self.mass[None] += ti.cast(qn, ti.f64) * vol
@@ -175,8 +192,4 @@ class SPDESolver:
             self.n_negative[None] += ti.cast(qn < 0, ti.i64)
         if ti.static(self.gaussian):
             for J in ti.grouped(self.qbar):
-                dq = self.real(0.0)
-                for a in ti.static(range(dim)):
-                    up = J + ti.Vector.unit(dim + 1, a + 1, ti.i32)
-                    dq += (self.flux_bar[up][a] - self.flux_bar[J][a]) * self.real(1.0 / self.grid.dx[a])
-                self.qbar[J] += self.real(self.dt) * dq
+                self.qbar[J] += self.real(self.dt) * self._divergence(self.flux_bar, J)

@@ -25,7 +25,7 @@ class Grid:
 
     @classmethod
     def from_scene(cls, scene) -> "Grid":
-        vol = scene.cell_volume
+        vol = math.prod(L / n for L, n in zip(scene.lengths, scene.cells))
         return cls(
             cells=scene.cells,
             lengths=scene.lengths,
@@ -58,17 +58,6 @@ class Grid:
 def numpy_dtype(real):
     """The NumPy dtype of a Taichi real type."""
     return np.float32 if real == ti.f32 else np.float64
-
-
-@ti.func
-def wrap(i, n):
-    """Periodic image of index ``i`` in ``[0, n)`` for ``-n <= i < 2n``."""
-    j = i
-    if j < 0:
-        j += n
-    elif j >= n:
-        j -= n
-    return j
 
 
 @ti.func

@@ -5,7 +5,7 @@ import numpy as np
 import taichi as ti
 
 from . import rng
-from .grid import DIRICHLET, NEUMANN, PERIODIC, Grid, cell_of, numpy_dtype
+from .grid import DIRICHLET, NEUMANN, PERIODIC, Grid, cell_of
 
 DEAD = 0xFFFFFFFF  # birth word of an absorbed particle
 
