@@ -37,8 +37,8 @@ def test_stationary_pooling_counts_samples():
     # pooled variance after 1000 steps: near the stationary linear-scheme value (loose: time samples correlate)
     var = res.stats.variance[0].mean() * res.cell_volume**2
     assert var == pytest.approx(theory.linear_scheme_variance((100,), (0.1,), 5.0), rel=0.08)
-    assert res.stats.histogram.shape == (1, 100, 41) and res.stats.histogram[0].sum() == samples * 40 * 100 - \
-        0  # every sample falls in [-10, 30] particles
+    assert res.stats.histogram.shape == (1, 100, 41)
+    assert res.stats.histogram[0].sum() == samples * 40 * 100  # every sample falls in [-10, 30] particles
 
 
 def test_unstable_run_stops_with_a_clear_error(tmp_path):
