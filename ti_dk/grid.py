@@ -51,6 +51,11 @@ class Grid:
         return tuple(self.cell_volume / h for h in self.dx)
 
     @property
+    def reservoir_ppc_max(self) -> float:
+        """The largest reservoir density, in particles per cell."""
+        return max(max(r) for r in self.reservoir) * self.cell_volume
+
+    @property
     def has_dirichlet(self) -> bool:
         return any(DIRICHLET in sides for sides in self.boundary)
 

@@ -40,7 +40,6 @@ class ParticleSolver:
         self.overflow = ti.field(ti.i32, shape=())  # set when a member needed more than `capacity` slots
         if grid.has_dirichlet:
             self.pid = ti.Vector.field(2, ti.u32, shape=(ensemble, capacity))  # (slot at birth, birth step + 1)
-            self.ppc_max = max(max(r) for r in grid.reservoir) * grid.cell_volume
             # reservoir ghost layer beyond each side of axis a: one cell thick
             self.layers = [tuple(1 if b == a else m for b, m in enumerate(self.n)) for a in range(self.dim)]
             self.cross = max(math.prod(layer) for layer in self.layers)
@@ -50,7 +49,7 @@ class ParticleSolver:
         """Slots per member: the most particles sampling ``ppc`` can give, with room for reservoirs."""
         cap = int(np.ceil(ppc).sum())
         if grid.has_dirichlet:
-            res = max(max(r) for r in grid.reservoir) * grid.cell_volume * math.prod(grid.cells)
+            res = grid.reservoir_ppc_max * math.prod(grid.cells)
             cap = max(cap, int(res))
             cap = int(1.25 * cap + 10 * math.sqrt(cap) + 64)
         return max(cap, 1)
@@ -218,7 +217,7 @@ class ParticleSolver:
     def _exchange(self, step: ti.u32):
         """Dirichlet sides: drop absorbed particles (keeping order) and inject reservoir walkers."""
         key = ti.math.uvec2(self.key[0], self.key[1])
-        K = ti.static(int(self.ppc_max) + 1)  # most particles a reservoir cell can hold
+        K = ti.static(int(self.grid.reservoir_ppc_max) + 1)  # most particles a reservoir cell can hold
         for e in range(self.ensemble):
             j = 0
             for p in range(self.n_alive[e]):
