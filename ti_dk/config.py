@@ -23,9 +23,11 @@ else:  # pragma: no cover - exercised on Python 3.10 only
 
 from . import initial
 from .grid import Grid
+from .regrid import RegridParams
 
 SCENE_DIR = Path(__file__).resolve().parent.parent / "scenes"
-METHODS = ("fv", "gaussian", "particle")
+METHODS = ("fv", "gaussian", "particle", "hybrid")
+SPDES = ("fv", "gaussian")  # the SPDE a hybrid run keeps on the whole grid
 BOUNDARY_KINDS = ("periodic", "neumann", "dirichlet")
 PRECISIONS = ("f32", "f64")
 PARTICLE_INITS = ("per_cell", "exact_uniform")
@@ -68,6 +70,12 @@ class Scene:
     sample_every: int = 1
     histogram: tuple[int, int] | None = None
     particle_init: str = "per_cell"
+    spde: str = "fv"
+    regrid_interval: int = 10
+    buffer: int = 1
+    grid_efficiency: float = 0.7
+    min_box: int = 2
+    max_box: int = 32
     allow_unstable: bool = False
     description: str = ""
 
@@ -111,6 +119,11 @@ class Scene:
     def clamp_probability(self) -> float:
         """Probability that one particle step along the finest axis exceeds Δx (and is clamped)."""
         return math.erfc(min(self.dx) / math.sqrt(2 * self.dt))
+
+    @property
+    def regrid(self) -> RegridParams:
+        return RegridParams(threshold=self.threshold, buffer=self.buffer, efficiency=self.grid_efficiency,
+                            min_box=self.min_box, max_box=self.max_box)
 
     @property
     def params(self) -> dict[str, Any]:
@@ -229,10 +242,10 @@ def make_scene(flat: dict[str, Any]) -> Scene:
         init_params=tuple(sorted(params.items())),
         description=str(flat.get("description", "")),
     )
-    for key in ("method", "precision", "particle_init"):
+    for key in ("method", "precision", "particle_init", "spde"):
         if key in flat:
             kw[key] = flat[key]
-    choices = {"method": METHODS, "precision": PRECISIONS, "particle_init": PARTICLE_INITS}
+    choices = {"method": METHODS, "precision": PRECISIONS, "particle_init": PARTICLE_INITS, "spde": SPDES}
     for key, allowed in choices.items():
         value = kw.get(key, _FIELDS[key].default)
         if value not in allowed:
@@ -240,9 +253,16 @@ def make_scene(flat: dict[str, Any]) -> Scene:
     for key in ("C", "t_end", "threshold"):
         if key in flat:
             kw[key] = _number(key, flat[key])
-    for key in ("ensemble", "sample_every"):
+    for key in ("ensemble", "sample_every", "min_box", "max_box"):
         if key in flat:
             kw[key] = _int(key, flat[key], minimum=1)
+    for key in ("regrid_interval", "buffer"):
+        if key in flat:
+            kw[key] = _int(key, flat[key], minimum=0)
+    if "grid_efficiency" in flat:
+        kw["grid_efficiency"] = _number("grid_efficiency", flat["grid_efficiency"])
+        if kw["grid_efficiency"] > 1:
+            raise ConfigError(f"grid_efficiency = {kw['grid_efficiency']}: give a fraction in (0, 1]")
     if "seed" in flat:
         kw["seed"] = _int("seed", flat["seed"], minimum=0)
         if kw["seed"] >= 2**64:
@@ -270,6 +290,9 @@ def make_scene(flat: dict[str, Any]) -> Scene:
     scene = Scene(**kw)
     if scene.particle_init == "exact_uniform" and (scene.init != "uniform" or scene.method != "particle"):
         raise ConfigError("particle_init = 'exact_uniform' needs init 'uniform' and method 'particle'")
+    if scene.max_box < 2 * scene.min_box:
+        raise ConfigError(f"max_box = {scene.max_box} < 2 min_box = {2 * scene.min_box}: "
+                          "raise max_box so an oversized box can be halved")
     _check_time_step(scene)
     return scene
 
@@ -281,7 +304,7 @@ def _check_time_step(scene: Scene) -> None:
             f"C = {scene.C} is beyond the explicit stability limit C < {limit:.4g} of the FV scheme on this grid: "
             f"lower C (e.g. --set C={limit / 2:.4g}) or set allow_unstable=true for a stability experiment"
         )
-    if scene.method == "particle" and scene.clamp_probability > CLAMP_WARN:
+    if scene.method in ("particle", "hybrid") and scene.clamp_probability > CLAMP_WARN:
         warnings.warn(
             f"C = {scene.C}: a particle step is clamped to ±Δx with probability {scene.clamp_probability:.2g} "
             f"per axis and step (> {CLAMP_WARN:g}); lower C to make clamping rare",

@@ -61,6 +61,7 @@ class SPDESolver:
         """Advance all members from step ``n`` to ``n + 1``."""
         self._fluxes(n)
         self._update()
+        self._diagnose()
 
     def density(self) -> np.ndarray:
         """Number density of every member, ``(ensemble, *cells)``, float64."""
@@ -179,17 +180,21 @@ class SPDESolver:
 
     @ti.kernel
     def _update(self):
+        for J in ti.grouped(self.q):
+            self.q[J] += self.real(self.dt) * self._divergence(self.flux, J)
+        if ti.static(self.gaussian):
+            for J in ti.grouped(self.qbar):
+                self.qbar[J] += self.real(self.dt) * self._divergence(self.flux_bar, J)
+
+    @ti.kernel
+    def _diagnose(self):
+        """Mass, smallest density and negative cells of q as it stands (after a step or a hybrid sync)."""
         vol = ti.static(self.grid.cell_volume)
         self.mass[None] = 0.0
         self.q_min[None] = self.real(ti.math.inf)
         self.n_negative[None] = 0
         for J in ti.grouped(self.q):
-            self.q[J] += self.real(self.dt) * self._divergence(self.flux, J)
-        for J in ti.grouped(self.q):  # a loop of its own, so the reductions stay thread-local
             qn = self.q[J]
             self.mass[None] += ti.cast(qn, ti.f64) * vol
             ti.atomic_min(self.q_min[None], qn)
             self.n_negative[None] += ti.cast(qn < 0, ti.i64)
-        if ti.static(self.gaussian):
-            for J in ti.grouped(self.qbar):
-                self.qbar[J] += self.real(self.dt) * self._divergence(self.flux_bar, J)

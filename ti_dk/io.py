@@ -28,7 +28,7 @@ class RunFile:
     ``wall_time``; ``/stats/time`` and ``/stats/{mean,variance,skewness,kurtosis}`` shaped
     ``(n_rows, *cells)`` in number-density units, ``/stats/n_samples``, optional
     ``/stats/histogram`` ``(n_rows, *cells, bins)`` with attribute ``lo``; ``/diagnostics/*`` one
-    entry per step. Every row is flushed when written; ``complete`` turns true only at the end, so
+    entry per step; ``/regrid/*`` one entry per regrid of a hybrid run. Every row is flushed when written; ``complete`` turns true only at the end, so
     a killed run leaves a readable file that says it is unfinished.
     """
 
@@ -80,6 +80,14 @@ class RunFile:
                 self._grow(self.diag, k, (), np.asarray(v).dtype if len(v) else np.float64)
             self._append(self.diag[k], v)
         self.h5.flush()
+
+    def write_table(self, name: str, records: list[dict]) -> None:
+        """``/name/<key>``: one dataset per key of equal-keyed records (the hybrid's regrid log)."""
+        if records:
+            g = self.h5.create_group(name)
+            for k in records[0]:
+                g.create_dataset(k, data=np.array([r[k] for r in records]))
+            self.h5.flush()
 
     def close(self, wall_time: float | None = None, error: str | None = None) -> None:
         if wall_time is not None:

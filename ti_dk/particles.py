@@ -11,15 +11,84 @@ DEAD = 0xFFFFFFFF  # birth word of an absorbed particle
 
 
 @ti.data_oriented
-class ParticleSolver:
-    r"""Brownian walkers with D = ½ for every ensemble member (paper §3, the particle model).
+class Walker:
+    r"""The stateless particle numerics shared by the particle and hybrid solvers (ti.funcs only).
 
-    One step moves each particle by
+    A step of particle ``(id0, birth)`` of member ``e`` at step ``n`` is
 
     .. math:: x_a \leftarrow x_a + \operatorname{clamp}(\sqrt{Δt}\, Z_a, -Δx_a, Δx_a),
 
-    so a particle crosses at most one cell per step. ``Z_a`` is keyed on (seed, member, step,
-    particle id), so a particle's path never depends on which thread moves it. Walls: periodic
+    with ``Z`` keyed on (seed, member, step, id0, birth): the same whichever thread or slot holds it.
+    """
+
+    def __init__(self, grid: Grid, dt: float, real, seed: int):
+        self.grid, self.dt, self.real = grid, dt, real
+        self.dim = grid.dim
+        self.key = rng.seed_key(seed)
+
+    @ti.func
+    def move(self, x, e, id0, birth, step):
+        """One clamped Brownian step of the particle (id0, birth) of member ``e``; applies the walls.
+
+        Returns the new position, whether it is still in the domain, and the number of clamped axes.
+        """
+        bits = rng.philox4x32(ti.math.uvec4(id0, step, ti.u32(e), ti.u32(rng.WALK) | (birth << rng.PURPOSE_BITS)),
+                              ti.math.uvec2(self.key[0], self.key[1]))
+        y = x
+        alive = True
+        clamped = 0
+        for a in ti.static(range(self.dim)):
+            h = ti.static(self.grid.dx[a])
+            L = ti.static(self.grid.lengths[a])
+            lo, hi = ti.static(self.grid.boundary[a])
+            d = self.real(self.dt**0.5) * rng.normal(bits[a], self.real)
+            if ti.abs(d) > h:
+                d = ti.math.clamp(d, -self.real(h), self.real(h))
+                clamped += 1
+            ya = y[a] + d
+            if ti.static(lo == PERIODIC):
+                if ya < 0:
+                    ya += self.real(L)
+                elif ya >= self.real(L):
+                    ya -= self.real(L)
+            else:
+                if ya < 0:
+                    if ti.static(lo == NEUMANN):
+                        ya = -ya
+                    else:
+                        alive = False
+                elif ya > self.real(L):
+                    if ti.static(hi == NEUMANN):
+                        ya = self.real(2 * L) - ya
+                    else:
+                        alive = False
+            y[a] = ya
+        return y, alive, clamped
+
+    @ti.func
+    def in_cell(self, C, bits):
+        """A uniform position in cell ``C`` (integer vector, may lie in a ghost layer)."""
+        y = ti.Vector.zero(self.real, self.dim)
+        for a in ti.static(range(self.dim)):
+            y[a] = (self.real(C[a]) + rng.uniform(bits[a], self.real)) * self.real(self.grid.dx[a])
+        return y
+
+    @ti.func
+    def how_many(self, lam, bits_word):
+        """ℓ particles plus one more with probability α, for a mean of λ = ℓ + α (paper §3)."""
+        ell = ti.floor(lam)
+        extra = 0
+        if rng.uniform(bits_word, ti.f64) < lam - ell:
+            extra = 1
+        return ti.cast(ell, ti.i32) + extra
+
+
+@ti.data_oriented
+class ParticleSolver:
+    r"""Brownian walkers with D = ½ for every ensemble member (paper §3, the particle model).
+
+    One step moves each particle by :meth:`Walker.move`, so a particle crosses at most one cell
+    per step and its path never depends on which thread moves it. Walls: periodic
     sides wrap, Neumann sides reflect, Dirichlet sides absorb what leaves and inject what a
     reservoir ghost layer at the reservoir density (sampled afresh each step) walks in.
 
@@ -32,6 +101,7 @@ class ParticleSolver:
         self.dim = grid.dim
         self.n = grid.cells
         self.key = rng.seed_key(seed)
+        self.walker = Walker(grid, dt, real, seed)
         self.x = ti.Vector.field(self.dim, real, shape=(ensemble, capacity))  # particle positions [length]
         self.n_alive = ti.field(ti.i32, shape=ensemble)  # live particles of each member
         self.count = ti.field(ti.i32, shape=(ensemble, *self.n))  # particles per cell (after bin())
@@ -96,63 +166,6 @@ class ParticleSolver:
                 f"a member needed more than {self.capacity} particle slots: lower the densities or the reservoir_ppc"
             )
 
-    # -- numerics (ti.func) -------------------------------------------------------------
-    @ti.func
-    def _move(self, x, e, id0, birth, step):
-        """One clamped Brownian step of the particle (id0, birth) of member ``e``; applies the walls.
-
-        Returns the new position, whether it is still in the domain, and the number of clamped axes.
-        """
-        bits = rng.philox4x32(ti.math.uvec4(id0, step, ti.u32(e), ti.u32(rng.WALK) | (birth << rng.PURPOSE_BITS)),
-                              ti.math.uvec2(self.key[0], self.key[1]))
-        y = x
-        alive = True
-        clamped = 0
-        for a in ti.static(range(self.dim)):
-            h = ti.static(self.grid.dx[a])
-            L = ti.static(self.grid.lengths[a])
-            lo, hi = ti.static(self.grid.boundary[a])
-            d = self.real(self.dt**0.5) * rng.normal(bits[a], self.real)
-            if ti.abs(d) > h:
-                d = ti.math.clamp(d, -self.real(h), self.real(h))
-                clamped += 1
-            ya = y[a] + d
-            if ti.static(lo == PERIODIC):
-                if ya < 0:
-                    ya += self.real(L)
-                elif ya >= self.real(L):
-                    ya -= self.real(L)
-            else:
-                if ya < 0:
-                    if ti.static(lo == NEUMANN):
-                        ya = -ya
-                    else:
-                        alive = False
-                elif ya > self.real(L):
-                    if ti.static(hi == NEUMANN):
-                        ya = self.real(2 * L) - ya
-                    else:
-                        alive = False
-            y[a] = ya
-        return y, alive, clamped
-
-    @ti.func
-    def _in_cell(self, C, bits):
-        """A uniform position in cell ``C`` (integer vector, may lie in a ghost layer)."""
-        y = ti.Vector.zero(self.real, self.dim)
-        for a in ti.static(range(self.dim)):
-            y[a] = (self.real(C[a]) + rng.uniform(bits[a], self.real)) * self.real(self.grid.dx[a])
-        return y
-
-    @ti.func
-    def _how_many(self, lam, bits_word):
-        """ℓ particles plus one more with probability α, for a mean of λ = ℓ + α (paper §3)."""
-        ell = ti.floor(lam)
-        extra = 0
-        if rng.uniform(bits_word, ti.f64) < lam - ell:
-            extra = 1
-        return ti.cast(ell, ti.i32) + extra
-
     # -- kernels ------------------------------------------------------------------------
     @ti.kernel
     def _sample(self, ppc: ti.template()):
@@ -165,11 +178,11 @@ class ParticleSolver:
                 for a in ti.static(range(self.dim)):
                     lin = lin * ti.u32(self.n[a]) + ti.u32(C[a])
                 bits = rng.philox4x32(ti.math.uvec4(lin, 0, ti.u32(e), ti.u32(rng.SAMPLE_COUNT)), key)
-                m = self._how_many(ppc[C], bits[0])
+                m = self.walker.how_many(ppc[C], bits[0])
                 for _ in range(m):
                     if k < self.capacity:
                         r = rng.philox4x32(ti.math.uvec4(ti.u32(k), 0, ti.u32(e), ti.u32(rng.SAMPLE_POSITION)), key)
-                        self.x[e, k] = self._in_cell(C, r)
+                        self.x[e, k] = self.walker.in_cell(C, r)
                     k += 1
             if k > self.capacity:
                 self.overflow[None] = 1
@@ -205,7 +218,7 @@ class ParticleSolver:
                 id0, birth = ti.u32(p), ti.u32(0)
                 if ti.static(self.grid.has_dirichlet):
                     id0, birth = self.pid[e, p][0], self.pid[e, p][1]
-                y, alive, clamped = self._move(self.x[e, p], e, id0, birth, step)
+                y, alive, clamped = self.walker.move(self.x[e, p], e, id0, birth, step)
                 self.x[e, p] = y
                 self.clamped[None] += clamped
                 if ti.static(self.grid.has_dirichlet):
@@ -239,12 +252,12 @@ class ParticleSolver:
                                 lin = lin * ti.u32(layer[b]) + ti.u32(G[b])
                             lin += ti.u32(tag)
                             bits = rng.philox4x32(ti.math.uvec4(lin, step, ti.u32(e), ti.u32(rng.SAMPLE_COUNT)), key)
-                            m = self._how_many(lam, bits[0])
+                            m = self.walker.how_many(lam, bits[0])
                             for k in range(m):
                                 id0 = lin * ti.u32(K) + ti.u32(k)
                                 r = rng.philox4x32(
                                     ti.math.uvec4(id0, step, ti.u32(e), ti.u32(rng.SAMPLE_POSITION)), key)
-                                y, alive, clamped = self._move(self._in_cell(C, r), e, id0, step + 1, step)
+                                y, alive, clamped = self.walker.move(self.walker.in_cell(C, r), e, id0, step + 1, step)
                                 self.clamped[None] += clamped
                                 if alive:
                                     if j < self.capacity:

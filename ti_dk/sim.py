@@ -16,12 +16,12 @@ from . import initial
 from .config import ConfigError, Scene
 from .fv import SPDESolver
 from .grid import Grid
+from .hybrid import HybridSolver
 from .io import RunFile
 from .particles import ParticleSolver
 from .stats import CellStats
 
 ARCHS = {"cpu": ti.cpu, "cuda": ti.cuda}
-DIAG_KEYS = ("time", "mass", "min_density", "negative_cells", "clamped_steps", "boundary_inflow")
 
 
 class SimulationError(RuntimeError):
@@ -79,6 +79,7 @@ class Result:
     diagnostics: dict[str, np.ndarray] = field(repr=False)
     final_density: np.ndarray = field(repr=False)  # every member at the end, (ensemble, *cells)
     wall_time: float = 0.0
+    regrids: list[dict] = field(default_factory=list, repr=False)  # hybrid: one record per regrid
     path: Path | None = None
 
 
@@ -90,9 +91,13 @@ def make_solver(scene: Scene, ppc: np.ndarray):
     if scene.method == "particle":
         solver = ParticleSolver(capacity=ParticleSolver.capacity_for(grid, ppc), **common)
         solver.initialize(ppc, exact_uniform=scene.particle_init == "exact_uniform")
-    else:
-        solver = SPDESolver(gaussian=scene.method == "gaussian", **common)
-        solver.initialize(ppc)
+        return solver
+    gaussian = "gaussian" in (scene.method, scene.spde if scene.method == "hybrid" else None)
+    solver = SPDESolver(gaussian=gaussian, **common)
+    solver.initialize(ppc)
+    if scene.method == "hybrid":
+        solver = HybridSolver(solver, scene.regrid, scene.regrid_interval, scene.seed)
+        solver.initialize()
     return solver
 
 
@@ -116,7 +121,7 @@ def run(scene: Scene, out: str | Path | None = None, progress: bool | None = Non
     rf = RunFile(path, scene, hist[1] - hist[0] + 1 if hist else None) if path else None
     rows: list[dict] = []
     times: list[float] = []
-    diag: dict[str, list] = {k: [] for k in DIAG_KEYS}
+    diag: dict[str, list] = {"time": []}  # per step: every key the solver reports
     flushed = 0
     stationary = scene.t_equil is not None
     n_equil = round(scene.t_equil / scene.dt) if stationary else 0
@@ -157,8 +162,8 @@ def run(scene: Scene, out: str | Path | None = None, progress: bool | None = Non
                         f"the density became NaN or infinite at step {n + 1} (t = {(n + 1) * scene.dt:.4g}): "
                         f"the scheme is unstable at C = {scene.C}; lower C")
                 diag["time"].append((n + 1) * scene.dt)
-                for k in DIAG_KEYS[1:]:
-                    diag[k].append(d[k])
+                for k, v in d.items():
+                    diag.setdefault(k, []).append(v)
                 record(n + 1)
                 bar.update()
     except OverflowError as exc:
@@ -170,7 +175,9 @@ def run(scene: Scene, out: str | Path | None = None, progress: bool | None = Non
             rf.close(time.perf_counter() - wall0, error=f"{type(exc).__name__}: {exc}")
         raise
     wall = time.perf_counter() - wall0
+    regrids = getattr(solver, "regrids", [])
     if rf:
+        rf.write_table("regrid", regrids)
         rf.close(wall)
     stack = {k: np.stack([r[k] for r in rows]) for k in rows[0]}
     stats = Stats(mean=stack["mean"], variance=stack["variance"], skewness=stack["skewness"],
@@ -178,4 +185,4 @@ def run(scene: Scene, out: str | Path | None = None, progress: bool | None = Non
                   hist_lo=hist[0] if hist else None)
     return Result(scene=scene, times=np.array(times), cell_volume=scene.cell_volume, stats=stats,
                   diagnostics={k: np.asarray(v) for k, v in diag.items()}, final_density=solver.density(),
-                  wall_time=wall, path=path)
+                  wall_time=wall, path=path, regrids=regrids)

@@ -1,0 +1,421 @@
+"""The AMAR hybrid (paper §3): the SPDE everywhere, real Brownian particles in a particle region."""
+
+import itertools
+import math
+
+import numpy as np
+import taichi as ti
+
+from . import regrid, rng
+from .fv import SPDESolver
+from .grid import DIRICHLET, PERIODIC, cell_of, numpy_dtype
+from .particles import Walker
+
+REGRID_BIRTH = 1 << 27  # flag in the birth word of particles sampled at a regrid (ghosts carry step + 1)
+
+
+@ti.data_oriented
+class ParticlePool:
+    """The particles of every member, double-buffered: buffer ``b`` of member ``e`` holds slots
+    ``[0, n[b, e])``. A step reads one buffer and compacts into the other; when a member needs
+    more than ``capacity`` slots the solver replaces the pool by a larger one."""
+
+    def __init__(self, ensemble: int, capacity: int, dim: int, real):
+        self.capacity = capacity
+        self.x = ti.Vector.field(dim, real, shape=(2, ensemble, capacity))  # positions [length]
+        # identity: (birth cell · 2^id_bits + index in that cell, birth word); keys the walk
+        self.pid = ti.Vector.field(2, ti.u32, shape=(2, ensemble, capacity))
+        self.n = ti.field(ti.i32, shape=(2, ensemble))  # occupied slots per buffer and member
+
+
+@ti.data_oriented
+class HybridSolver:
+    r"""SPDE on the whole grid coupled to particles in a region (paper §3.1–3.2).
+
+    One step ``n → n+1``:
+
+    1. the ghost ring (cells outside the region within Chebyshev distance 1 of it, and Dirichlet
+       reservoir cells beyond covered boundary cells) gets ``ℓ`` particles plus one with
+       probability ``α``, where ``ℓ + α = max(q_I^n, 0) V_c``, uniform in the cell;
+    2. the SPDE advances everywhere, eq. (9), giving ``q^{n+1,*}`` and the face fluxes ``F``;
+    3. every particle (real and ghost) takes one clamped step (:class:`Walker`); those ending in
+       the region are kept, the rest dropped, and the net crossings are counted per uncovered
+       cell: ``ΔN_I`` gains 1 for each real particle that leaves into ``I`` and loses 1 for each
+       ghost from ``I`` that enters;
+    4. synchronisation (eq. 12 and its multi-dimensional form): covered cells take
+       ``q_I = N_I / V_c``; each uncovered ring cell drops the SPDE fluxes it exchanged with covered
+       face neighbours (set S1) and takes the particle crossings (set S2),
+
+       .. math:: q_I^{n+1} = q_I^{n+1,*} - \frac{1}{V_c}\sum_{i∈S_1} Δt A_a F^{i→I}
+                 + \frac{ΔN_I}{V_c}.
+
+    The region is a cell mask per member, so the result does not depend on how it is cut into
+    boxes, and a particle's random numbers depend only on its identity (birth cell, index, birth
+    step), never on its slot. With a fixed region and periodic or Neumann walls, the total number
+    of particles (SPDE mass plus particles) is conserved to round-off.
+
+    Regridding (every ``regrid_interval`` steps and at the start; 0 keeps the first region):
+    :func:`regrid.region` per member; particles in cells that stay covered are kept, cells that
+    leave the region keep their count as density, newly covered cells are sampled from the SPDE
+    (the only step that changes the total; logged in ``regrids``).
+    """
+
+    def __init__(self, spde: SPDESolver, params: regrid.RegridParams, regrid_interval: int, seed: int):
+        grid = spde.grid
+        self.spde, self.params, self.regrid_interval = spde, params, regrid_interval
+        self.grid, self.dt, self.ensemble, self.real = grid, spde.dt, spde.ensemble, spde.real
+        self.dim, self.n = grid.dim, grid.cells
+        self.key = rng.seed_key(seed)
+        self.walker = Walker(grid, spde.dt, spde.real, seed)
+        self.offsets = list(itertools.product((-1, 0, 1), repeat=self.dim))  # the 3^d Chebyshev neighbours
+        self.padded = tuple(m + 2 for m in self.n)  # the grid plus one layer of ghost cells per side
+        self.id_bits = 32 - math.ceil(math.log2(math.prod(self.padded)))
+        if self.id_bits < 8:
+            raise ValueError(f"grid {list(self.n)} is too large for 32-bit particle ids: use fewer cells")
+        self.periodic = tuple(lo == PERIODIC for lo, _ in grid.boundary)
+        E, n = self.ensemble, self.n
+        self.covered = ti.field(ti.u8, shape=(E, *n))  # 1 where the cell is in the particle region
+        self.fresh = ti.field(ti.u8, shape=(E, *n))  # the region being regridded to
+        self.ring = ti.field(ti.u8, shape=(E, *self.padded))  # 1 on ghost cells (padded index = cell + 1)
+        self.count = ti.field(ti.i32, shape=(E, *n))  # particles ending the walk in each covered cell
+        self.dN = ti.field(ti.i32, shape=(E, *n))  # ΔN: net particles the region gave each uncovered cell
+        self.n_real = ti.field(ti.i32, shape=E)  # particles of each member between steps
+        self.need = ti.field(ti.i32, shape=2)  # [most slots a member asked for, a cell asked for too many]
+        self.clamped = ti.field(ti.i64, shape=())  # axis steps clamped to ±Δx in the last walk
+        self.p_inflow = ti.field(ti.i64, shape=())  # particles injected minus absorbed at Dirichlet sides
+        self.wall_inflow = ti.field(ti.f64, shape=())  # SPDE boundary inflow of covered cells (cancelled)
+        self.created = ti.field(ti.i64, shape=())  # particles sampled at the last regrid
+        self.removed = ti.field(ti.f64, shape=())  # SPDE content Σ q V_c those cells held before
+        self.pool = ParticlePool(E, 1, self.dim, self.real)
+        self.cur = 0  # the pool buffer holding the particles between steps
+        self.boxes: list[list[regrid.Box]] = [[] for _ in range(E)]  # each member's region
+        self.regrids: list[dict] = []  # one record per regrid
+        self._change = 0.0  # created − removed at this step's regrid
+
+    # -- public -------------------------------------------------------------------------
+    def initialize(self) -> None:
+        """The first region from the (already initialised) SPDE, particles sampled into it."""
+        self.regrid(0)
+
+    def step(self, n: int) -> None:
+        """Advance from step ``n`` to ``n + 1`` (see the class docstring)."""
+        self._change = 0.0
+        if self.regrid_interval and n > 0 and n % self.regrid_interval == 0:
+            self.regrid(n)
+        while True:  # the ghost fill is a pure function of (q^n, step): redo it in a larger pool
+            self._fill(self.pool, self.cur, n)
+            need = self._check_need()
+            if need <= self.pool.capacity:
+                break
+            self._grow(2 * need)
+        self.spde._fluxes(n)
+        self.spde._update()
+        self._walk(self.pool, self.cur, n)
+        self.cur = 1 - self.cur
+        self._sync()
+        self.spde._diagnose()
+
+    def regrid(self, n: int) -> None:
+        """New region from the SPDE density at step ``n`` (tag, buffer, Berger–Rigoutsos)."""
+        ppc = self.spde.density() * self.grid.cell_volume
+        masks = np.zeros(ppc.shape, dtype=bool)
+        cache: dict[bytes, tuple] = {}
+        n_boxes, tagged = 0, 0
+        for e in range(self.ensemble):
+            tags = regrid.grow(regrid.tag(ppc[e], self.params.threshold), self.params.buffer, self.periodic)
+            k = tags.tobytes()
+            if k not in cache:
+                cache[k] = regrid.cluster(tags, self.params)
+            self.boxes[e] = cache[k]
+            masks[e] = regrid.mask(self.boxes[e], tags.shape)
+            n_boxes += len(self.boxes[e])
+            tagged += int(tags.sum())
+        self.set_region(masks, n, ppc)
+        covered = int(masks.sum())
+        self.regrids.append({"step": n, "boxes": n_boxes, "covered_cells": covered,
+                             "efficiency": tagged / covered if covered else 1.0,
+                             "created": int(self.created[None]), "removed": float(self.removed[None])})
+
+    def set_region(self, masks: np.ndarray, n: int, ppc: np.ndarray | None = None) -> None:
+        """Make ``masks`` (``(ensemble, *cells)`` booleans) the particle region at step ``n``."""
+        if ppc is None:
+            ppc = self.spde.density() * self.grid.cell_volume
+        masks = np.broadcast_to(masks, (self.ensemble, *self.n))
+        self._grow(self._estimate(masks, ppc))
+        self.fresh.from_numpy(masks.astype(np.uint8))
+        self._regrid_apply(self.pool, self.cur, n)
+        self.cur = 1 - self.cur
+        self._ring()
+        if self._check_need() > self.pool.capacity:  # the estimate bounds it; kept as a guard
+            raise RuntimeError("particle pool estimate too small at a regrid")
+        self._change += self.created[None] - self.removed[None]
+        self.spde._diagnose()
+
+    def density(self) -> np.ndarray:
+        return self.spde.density()
+
+    def region(self) -> np.ndarray:
+        """The particle region of every member, ``(ensemble, *cells)`` booleans."""
+        return self.covered.to_numpy().astype(bool)
+
+    def diagnostics(self) -> dict[str, float]:
+        d = self.spde.diagnostics()
+        d["boundary_inflow"] = d["boundary_inflow"] + self.wall_inflow[None] + self.p_inflow[None]
+        d["clamped_steps"] = int(self.clamped[None])
+        d["particles"] = int(self.n_real.to_numpy().sum(dtype=np.int64))
+        d["regrid_change"] = self._change
+        return d
+
+    # -- pool management (host) ---------------------------------------------------------
+    def _estimate(self, masks: np.ndarray, ppc: np.ndarray) -> int:
+        """Slots a member can need after a regrid: its region and ghost ring full, with headroom."""
+        axes = tuple(range(1, self.dim + 1))
+        near = np.stack([regrid.grow(m, 1, self.periodic) for m in masks])
+        inside = np.ceil(np.maximum(ppc, 0) * near).sum(axis=axes)
+        walls = self.grid.reservoir_ppc_max * 3 ** (self.dim - 1) * masks.sum(axis=axes) if self.grid.has_dirichlet else 0
+        need = float(np.max(inside + walls)) if self.ensemble else 0.0
+        return int(1.5 * need + 4 * math.sqrt(need) + 64)
+
+    def _check_need(self) -> int:
+        need, too_many = self.need.to_numpy()
+        if too_many:
+            raise OverflowError(
+                f"a ghost or newly covered cell holds more than {2**self.id_bits - 1} particles: "
+                "lower the density or use fewer cells")
+        return int(need)
+
+    def _grow(self, capacity: int) -> None:
+        """Replace the pool by one of at least ``capacity`` slots, keeping the current particles."""
+        old = self.pool
+        if capacity <= old.capacity:
+            return
+        new = ParticlePool(self.ensemble, capacity, self.dim, self.real)
+        x, pid = old.x.to_numpy(), old.pid.to_numpy()
+        nx = np.zeros((2, self.ensemble, capacity, self.dim), dtype=numpy_dtype(self.real))
+        npid = np.zeros((2, self.ensemble, capacity, 2), dtype=np.uint32)
+        nx[:, :, :old.capacity], npid[:, :, :old.capacity] = x, pid
+        new.x.from_numpy(nx)
+        new.pid.from_numpy(npid)
+        new.n.from_numpy(old.n.to_numpy())
+        self.pool = new
+
+    # -- numerics (ti.func) -------------------------------------------------------------
+    @ti.func
+    def _member(self, e, C):
+        """The member-first index ``(e, *C)``."""
+        J = ti.Vector.zero(ti.i32, self.dim + 1)
+        J[0] = e
+        for a in ti.static(range(self.dim)):
+            J[a + 1] = C[a]
+        return J
+
+    @ti.func
+    def _inside(self, C) -> bool:
+        ok = True
+        for a in ti.static(range(self.dim)):
+            ok = ok and 0 <= C[a] < self.n[a]
+        return ok
+
+    @ti.func
+    def _origin(self, id0):
+        """The birth cell of a particle (it may be a reservoir cell, one layer outside)."""
+        lin = ti.cast(id0 >> ti.u32(self.id_bits), ti.i32)
+        C = ti.Vector.zero(ti.i32, self.dim)
+        for b in ti.static(range(self.dim)):
+            a = ti.static(self.dim - 1 - b)
+            C[a] = lin % self.padded[a] - 1
+            lin //= self.padded[a]
+        return C
+
+    @ti.func
+    def _sample(self, pool: ti.template(), buf, e, C, lam, step, birth):
+        """Append ℓ particles plus one with probability α (``lam = ℓ + α``) uniform in cell ``C``
+        (paper §3) to buffer ``buf`` of member ``e``; returns how many."""
+        lin = ti.u32(0)
+        for a in ti.static(range(self.dim)):
+            lin = lin * ti.u32(self.padded[a]) + ti.u32(C[a] + 1)
+        key = ti.math.uvec2(self.key[0], self.key[1])
+        bits = rng.philox4x32(ti.math.uvec4(lin, ti.u32(step), ti.u32(e), ti.u32(rng.SAMPLE_COUNT)), key)
+        m = self.walker.how_many(ti.max(lam, 0.0), bits[0])
+        if m >= (1 << self.id_bits):
+            self.need[1] = 1
+            m = 0
+        base = ti.atomic_add(pool.n[buf, e], m)
+        ti.atomic_max(self.need[0], base + m)
+        for k in range(m):
+            if base + k < pool.capacity:
+                id0 = (lin << ti.u32(self.id_bits)) | ti.u32(k)
+                r = rng.philox4x32(ti.math.uvec4(id0, ti.u32(step), ti.u32(e), ti.u32(rng.SAMPLE_POSITION)), key)
+                pool.x[buf, e, base + k] = self.walker.in_cell(C, r)
+                pool.pid[buf, e, base + k] = ti.math.uvec2(id0, ti.u32(birth))
+        return m
+
+    # -- kernels ------------------------------------------------------------------------
+    @ti.kernel
+    def _ring(self):
+        """Mark the ghost cells: not covered, within Chebyshev distance 1 of a covered cell."""
+        for I in ti.grouped(self.ring):
+            C = ti.Vector([I[a + 1] - 1 for a in ti.static(range(self.dim))])
+            outside = 0
+            ok = True
+            for a in ti.static(range(self.dim)):  # outside cells only beyond Dirichlet sides
+                if C[a] < 0:
+                    outside += 1
+                    if ti.static(self.grid.boundary[a][0] != DIRICHLET):
+                        ok = False
+                elif C[a] >= self.n[a]:
+                    outside += 1
+                    if ti.static(self.grid.boundary[a][1] != DIRICHLET):
+                        ok = False
+            r = 0
+            if ok and outside <= 1 and not (outside == 0 and self.covered[self._member(I[0], C)]):
+                for off in ti.static(self.offsets):
+                    N = C + ti.Vector(off)
+                    inside = True
+                    for a in ti.static(range(self.dim)):
+                        if ti.static(self.periodic[a]):
+                            N[a] = (N[a] + self.n[a]) % self.n[a]
+                        inside = inside and 0 <= N[a] < self.n[a]
+                    if inside and self.covered[self._member(I[0], N)]:
+                        r = 1
+            self.ring[I] = ti.u8(r)
+
+    @ti.kernel
+    def _fill(self, pool: ti.template(), cur: ti.i32, step: ti.i32):
+        """Step 1: ghost particles from q^n (or the reservoir) appended after the real ones."""
+        vol = ti.static(self.grid.cell_volume)
+        self.need[0] = 0
+        self.need[1] = 0
+        for e in range(self.ensemble):
+            pool.n[cur, e] = self.n_real[e]
+            ti.atomic_max(self.need[0], self.n_real[e])
+        for I in ti.grouped(self.ring):
+            if self.ring[I]:
+                C = ti.Vector([I[a + 1] - 1 for a in ti.static(range(self.dim))])
+                lam = 0.0
+                if self._inside(C):
+                    lam = ti.cast(self.spde.q[self._member(I[0], C)], ti.f64) * vol
+                else:
+                    for a in ti.static(range(self.dim)):
+                        if C[a] < 0:
+                            lam = self.grid.reservoir[a][0] * vol
+                        elif C[a] >= self.n[a]:
+                            lam = self.grid.reservoir[a][1] * vol
+                self._sample(pool, cur, I[0], C, lam, step, step + 1)
+
+    @ti.kernel
+    def _walk(self, pool: ti.template(), cur: ti.i32, step: ti.i32):
+        """Step 3: walk, keep what ends in the region (compacted into the other buffer), count ΔN."""
+        nxt = 1 - cur
+        self.clamped[None] = 0
+        self.p_inflow[None] = 0
+        for e in range(self.ensemble):
+            pool.n[nxt, e] = 0
+        for e, p in ti.ndrange(self.ensemble, pool.capacity):
+            if p < pool.n[cur, e]:
+                ident = pool.pid[cur, e, p]
+                y, alive, clamped = self.walker.move(pool.x[cur, e, p], e, ident[0], ident[1], ti.u32(step))
+                self.clamped[None] += clamped
+                ghost = ident[1] == ti.u32(step + 1)
+                D = ti.Vector.zero(ti.i32, self.dim + 1)
+                D[0] = e
+                keep = False
+                if alive:
+                    for a in ti.static(range(self.dim)):
+                        D[a + 1] = cell_of(y[a], self.real(self.grid.dx[a]), self.n[a])
+                    keep = self.covered[D] != 0
+                if keep:
+                    slot = ti.atomic_add(pool.n[nxt, e], 1)
+                    pool.x[nxt, e, slot] = y
+                    pool.pid[nxt, e, slot] = ident
+                    self.count[D] += 1
+                    if ghost:
+                        O = self._origin(ident[0])
+                        if self._inside(O):
+                            self.dN[self._member(e, O)] -= 1
+                        else:
+                            self.p_inflow[None] += 1
+                elif not ghost:
+                    if alive:
+                        self.dN[D] += 1
+                    else:
+                        self.p_inflow[None] -= 1
+        for e in range(self.ensemble):
+            self.n_real[e] = pool.n[nxt, e]
+
+    @ti.kernel
+    def _sync(self):
+        """Step 4: covered cells take their counts; ring cells swap S1 fluxes for ΔN (eq. 12)."""
+        vol = ti.static(self.grid.cell_volume)
+        self.wall_inflow[None] = 0.0
+        for J in ti.grouped(self.covered):
+            if self.covered[J]:
+                self.spde.q[J] = self.real(ti.cast(self.count[J], ti.f64) / vol)
+                self.count[J] = 0
+                if ti.static(self.grid.has_dirichlet):  # the SPDE's boundary flux of this cell did not happen
+                    for a in ti.static(range(self.dim)):
+                        area = ti.static(self.grid.face_area[a] * self.dt)
+                        if ti.static(self.grid.boundary[a][0] == DIRICHLET):
+                            if J[a + 1] == 0:
+                                self.wall_inflow[None] += ti.cast(self.spde.flux[J][a], ti.f64) * area
+                        if ti.static(self.grid.boundary[a][1] == DIRICHLET):
+                            if J[a + 1] == self.n[a] - 1:
+                                self.wall_inflow[None] -= ti.cast(self.spde.flux[self.spde._upper(J, a)][a], ti.f64) * area
+            else:
+                P = J + 1
+                P[0] = J[0]
+                if self.ring[P]:
+                    corr = self.real(0.0)
+                    for a in ti.static(range(self.dim)):
+                        u = ti.Vector.unit(self.dim + 1, a + 1, ti.i32)
+                        lo, hi = J - u, J + u
+                        has_lo, has_hi = J[a + 1] > 0, J[a + 1] < self.n[a] - 1
+                        if ti.static(self.periodic[a]):
+                            lo[a + 1] = (lo[a + 1] + self.n[a]) % self.n[a]
+                            hi[a + 1] = hi[a + 1] % self.n[a]
+                            has_lo, has_hi = True, True
+                        k = self.real(self.dt / self.grid.dx[a])
+                        # S1: undo the terms ∓ Δt F / Δx_a that eq. (9) applied across faces shared with
+                        # covered cells (F is positive down the axis: F = ½ Δq/Δx + noise)
+                        if has_lo and self.covered[lo]:
+                            corr += k * self.spde.flux[J][a]
+                        if has_hi and self.covered[hi]:
+                            corr -= k * self.spde.flux[self.spde._upper(J, a)][a]
+                    self.spde.q[J] += corr + self.real(ti.cast(self.dN[J], ti.f64) / vol)  # S2
+                    self.dN[J] = 0
+
+    @ti.kernel
+    def _regrid_apply(self, pool: ti.template(), cur: ti.i32, step: ti.i32):
+        """Move to the region in ``fresh``: keep particles still covered, sample newly covered cells."""
+        vol = ti.static(self.grid.cell_volume)
+        nxt = 1 - cur
+        self.need[0] = 0
+        self.need[1] = 0
+        self.created[None] = 0
+        self.removed[None] = 0.0
+        for e in range(self.ensemble):
+            pool.n[nxt, e] = 0
+        for e, p in ti.ndrange(self.ensemble, pool.capacity):
+            if p < pool.n[cur, e]:
+                D = ti.Vector.zero(ti.i32, self.dim + 1)
+                D[0] = e
+                y = pool.x[cur, e, p]
+                for a in ti.static(range(self.dim)):
+                    D[a + 1] = cell_of(y[a], self.real(self.grid.dx[a]), self.n[a])
+                if self.fresh[D]:
+                    slot = ti.atomic_add(pool.n[nxt, e], 1)
+                    ti.atomic_max(self.need[0], slot + 1)
+                    pool.x[nxt, e, slot] = y
+                    pool.pid[nxt, e, slot] = pool.pid[cur, e, p]
+        for J in ti.grouped(self.covered):
+            if self.fresh[J] and not self.covered[J]:
+                C = ti.Vector([J[a + 1] for a in ti.static(range(self.dim))])
+                lam = ti.cast(self.spde.q[J], ti.f64) * vol
+                m = self._sample(pool, nxt, J[0], C, lam, step, step | REGRID_BIRTH)
+                self.created[None] += m
+                self.removed[None] += lam
+                self.spde.q[J] = self.real(ti.cast(m, ti.f64) / vol)
+        for J in ti.grouped(self.covered):
+            self.covered[J] = self.fresh[J]
+        for e in range(self.ensemble):
+            self.n_real[e] = pool.n[nxt, e]

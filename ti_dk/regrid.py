@@ -1,0 +1,155 @@
+"""Where particles are needed: tagging, buffering and Berger–Rigoutsos clustering (paper §3.2).
+
+Host-side NumPy, run once per regrid and member. A box is ``(lo, hi)``, two integer tuples with
+``lo <= i < hi`` along every axis, always inside the domain; the particle region is the union
+of the boxes, handed to the solvers as a cell mask so that nothing downstream depends on how the
+region was cut into boxes.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+Box = tuple[tuple[int, ...], tuple[int, ...]]
+
+
+@dataclass(frozen=True)
+class RegridParams:
+    """Clustering parameters (paper §3.2; the names follow AMReX).
+
+    ``threshold``: tag cells holding fewer particles than this (and every negative cell);
+    ``buffer``: grow the tags by this many cells (Chebyshev distance, across periodic sides);
+    ``efficiency``: smallest accepted fraction of tagged cells in a box;
+    ``min_box`` / ``max_box``: box side limits in cells.
+    """
+
+    threshold: float = 5.0
+    buffer: int = 1
+    efficiency: float = 0.7
+    min_box: int = 2
+    max_box: int = 32
+
+
+def tag(ppc: np.ndarray, threshold: float) -> np.ndarray:
+    """Cells whose SPDE content ``ppc`` (particles per cell) is below ``threshold`` or negative."""
+    return (ppc < threshold) | (ppc < 0)
+
+
+def grow(tags: np.ndarray, width: int, periodic: tuple[bool, ...]) -> np.ndarray:
+    """Tags dilated by ``width`` cells in Chebyshev distance; periodic axes wrap, others clip."""
+    out = tags.copy()
+    for a, wrap in enumerate(periodic):
+        base = out.copy()
+        for s in range(1, width + 1):
+            for shift in (s, -s):
+                if wrap:
+                    out |= np.roll(base, shift, axis=a)
+                else:
+                    rolled = np.roll(base, shift, axis=a)
+                    edge = [slice(None)] * base.ndim
+                    edge[a] = slice(0, shift) if shift > 0 else slice(shift, None)
+                    rolled[tuple(edge)] = False
+                    out |= rolled
+    return out
+
+
+def cluster(tags: np.ndarray, p: RegridParams) -> list[Box]:
+    """Berger–Rigoutsos: cover every tagged cell with disjoint boxes.
+
+    A box is accepted when its tagged fraction reaches ``p.efficiency`` (or it cannot be cut
+    into two boxes of at least ``p.min_box`` cells along any axis) and no side exceeds
+    ``p.max_box``. Otherwise it is cut, in this order of preference: at a hole in a signature
+    (a plane with no tags), at the strongest zero crossing of the signature's second
+    difference, else in half along its longest side.
+    """
+    boxes: list[Box] = []
+    todo = [_bounding(tags, (0,) * tags.ndim, tags.shape)]
+    while todo:
+        box = todo.pop()
+        if box is None:
+            continue
+        lo, hi = box
+        sub = tags[tuple(slice(a, b) for a, b in zip(lo, hi))]
+        size = np.array(hi) - np.array(lo)
+        splittable = size >= 2 * p.min_box
+        if sub.mean() >= p.efficiency and np.all(size <= p.max_box) or not splittable.any():
+            boxes.append(box)
+            continue
+        axis, cut = _cut(sub, size, splittable, p)
+        for part in ((lo, (*hi[:axis], lo[axis] + cut, *hi[axis + 1:])),
+                     ((*lo[:axis], lo[axis] + cut, *lo[axis + 1:]), hi)):
+            todo.append(_bounding(tags, *part))
+    return boxes
+
+
+def _bounding(tags: np.ndarray, lo, hi) -> Box | None:
+    """The smallest box inside ``[lo, hi)`` that holds all its tags; None if it has none."""
+    sub = tags[tuple(slice(a, b) for a, b in zip(lo, hi))]
+    if not sub.any():
+        return None
+    new_lo, new_hi = [], []
+    for a in range(tags.ndim):
+        sig = sub.any(axis=tuple(b for b in range(tags.ndim) if b != a))
+        idx = np.flatnonzero(sig)
+        new_lo.append(lo[a] + int(idx[0]))
+        new_hi.append(lo[a] + int(idx[-1]) + 1)
+    return tuple(new_lo), tuple(new_hi)
+
+
+def _cut(sub: np.ndarray, size: np.ndarray, splittable: np.ndarray, p: RegridParams) -> tuple[int, int]:
+    """Axis and offset of the cut for a box that is not accepted (see :func:`cluster`)."""
+    m = p.min_box
+    oversize = np.flatnonzero(size > p.max_box)
+    if oversize.size:  # too long: halve the longest side first
+        a = int(oversize[np.argmax(size[oversize])])
+        return a, int(size[a]) // 2
+    sigs = [sub.sum(axis=tuple(b for b in range(sub.ndim) if b != a)) for a in range(sub.ndim)]
+    # 1. holes: a plane without tags, closest to the middle of the box
+    best = None
+    for a in np.flatnonzero(splittable):
+        for i in np.flatnonzero(sigs[a] == 0):
+            if m <= i <= size[a] - m:
+                score = abs(i - size[a] / 2)
+                if best is None or score < best[0]:
+                    best = (score, int(a), int(i))
+    if best:
+        return best[1], best[2]
+    # 2. inflection: the largest jump of the second difference where it changes sign
+    best = None
+    for a in np.flatnonzero(splittable):
+        lap = np.zeros(size[a])
+        s = sigs[a].astype(float)
+        lap[1:-1] = s[2:] - 2 * s[1:-1] + s[:-2]
+        for i in range(max(m, 2), int(size[a]) - m + 1):
+            if i < size[a] and lap[i - 1] * lap[i] < 0:
+                jump = abs(lap[i] - lap[i - 1])
+                if best is None or jump > best[0]:
+                    best = (jump, int(a), i)
+    if best:
+        return best[1], best[2]
+    # 3. bisect the longest splittable side
+    a = int(np.flatnonzero(splittable)[np.argmax(size[splittable])])
+    return a, int(size[a]) // 2
+
+
+def mask(boxes: list[Box], shape: tuple[int, ...]) -> np.ndarray:
+    """The union of ``boxes`` as a boolean cell mask."""
+    out = np.zeros(shape, dtype=bool)
+    for lo, hi in boxes:
+        out[tuple(slice(a, b) for a, b in zip(lo, hi))] = True
+    return out
+
+
+def region(ppc: np.ndarray, p: RegridParams, periodic: tuple[bool, ...]) -> tuple[list[Box], np.ndarray]:
+    """Boxes and cell mask of the particle region for one member whose SPDE holds ``ppc``."""
+    tags = grow(tag(ppc, p.threshold), p.buffer, periodic)
+    boxes = cluster(tags, p)
+    return boxes, mask(boxes, ppc.shape)
+
+
+def efficiency(boxes: list[Box], tags: np.ndarray) -> float:
+    """Tagged cells over covered cells (1 for an empty region)."""
+    covered = sum(math.prod(b - a for a, b in zip(lo, hi)) for lo, hi in boxes)
+    return float(tags.sum()) / covered if covered else 1.0
