@@ -97,7 +97,7 @@ def test_dirichlet_ledger():
 
 def test_box_layout_does_not_matter_and_shared_ghosts_are_sampled_once():
     scene = load_scene("equilibrium1d", method="hybrid", cells=[16, 16], regrid_interval=0, threshold=1, ppc=3,
-                       t_equil=None, histogram=None, seed=7)
+                       t_equil=None, histogram=None, seed=7, ensemble=1)
     one = [((2, 2), (7, 12)), ((8, 2), (12, 12))]  # two boxes with a one-cell gap (x = 7) between them
     other = [((2, 2), (5, 7)), ((2, 7), (7, 12)), ((5, 2), (7, 7)), ((8, 2), (12, 5)), ((8, 5), (12, 12))]
     assert np.array_equal(mask(one, (16, 16)), mask(other, (16, 16)))

@@ -20,7 +20,7 @@ def _stats(path):
         return {k: f[f"stats/{k}"][:] for k in ("mean", "variance", "skewness", "kurtosis")}
 
 
-@pytest.mark.parametrize("method", ["fv", "particle"])
+@pytest.mark.parametrize("method", ["fv", "particle", "hybrid"])
 def test_same_seed_same_bits_on_one_and_two_threads(tmp_path, method):
     common = ["void1d", "--method", method, "--ensemble", "64", "--t-end", "0.0005", "--set", "cells=[40]"]
     out = {}

@@ -28,9 +28,11 @@ from .regrid import RegridParams
 SCENE_DIR = Path(__file__).resolve().parent.parent / "scenes"
 METHODS = ("fv", "gaussian", "particle", "hybrid")
 SPDES = ("fv", "gaussian")  # the SPDE a hybrid run keeps on the whole grid
+GHOST_PROFILES = ("linear", "uniform")  # how sampled particles lie in their cell (uniform: paper §3)
 BOUNDARY_KINDS = ("periodic", "neumann", "dirichlet")
 PRECISIONS = ("f32", "f64")
 PARTICLE_INITS = ("per_cell", "exact_uniform")
+ID_BITS_MIN = 8  # hybrid particle ids: birth cell in the high bits, at least this many for the index in the cell
 CLAMP_WARN = 1e-3  # warn when a particle step is clamped with more than this probability
 
 
@@ -71,6 +73,7 @@ class Scene:
     histogram: tuple[int, int] | None = None
     particle_init: str = "per_cell"
     spde: str = "fv"
+    ghost_profile: str = "linear"
     regrid_interval: int = 10
     buffer: int = 1
     grid_efficiency: float = 0.7
@@ -242,10 +245,11 @@ def make_scene(flat: dict[str, Any]) -> Scene:
         init_params=tuple(sorted(params.items())),
         description=str(flat.get("description", "")),
     )
-    for key in ("method", "precision", "particle_init", "spde"):
+    for key in ("method", "precision", "particle_init", "spde", "ghost_profile"):
         if key in flat:
             kw[key] = flat[key]
-    choices = {"method": METHODS, "precision": PRECISIONS, "particle_init": PARTICLE_INITS, "spde": SPDES}
+    choices = {"method": METHODS, "precision": PRECISIONS, "particle_init": PARTICLE_INITS, "spde": SPDES,
+               "ghost_profile": GHOST_PROFILES}
     for key, allowed in choices.items():
         value = kw.get(key, _FIELDS[key].default)
         if value not in allowed:
@@ -293,6 +297,9 @@ def make_scene(flat: dict[str, Any]) -> Scene:
     if scene.max_box < 2 * scene.min_box:
         raise ConfigError(f"max_box = {scene.max_box} < 2 min_box = {2 * scene.min_box}: "
                           "raise max_box so an oversized box can be halved")
+    if scene.method == "hybrid" and 32 - math.ceil(math.log2(math.prod(n + 2 for n in cells))) < ID_BITS_MIN:
+        raise ConfigError(f"cells = {list(cells)}: too many cells for the hybrid's 32-bit particle ids; "
+                          f"use at most about {2 ** (32 - ID_BITS_MIN):.3g} cells")
     _check_time_step(scene)
     return scene
 

@@ -7,6 +7,7 @@ import numpy as np
 import taichi as ti
 
 from . import regrid, rng
+from .config import ID_BITS_MIN
 from .fv import SPDESolver
 from .grid import DIRICHLET, PERIODIC, cell_of, numpy_dtype
 from .particles import Walker
@@ -60,8 +61,10 @@ class HybridSolver:
     (the only step that changes the total; logged in ``regrids``).
     """
 
-    def __init__(self, spde: SPDESolver, params: regrid.RegridParams, regrid_interval: int, seed: int):
+    def __init__(self, spde: SPDESolver, params: regrid.RegridParams, regrid_interval: int, seed: int,
+                 ghost_profile: str = "linear"):
         grid = spde.grid
+        self.linear_ghosts = ghost_profile == "linear"
         self.spde, self.params, self.regrid_interval = spde, params, regrid_interval
         self.grid, self.dt, self.ensemble, self.real = grid, spde.dt, spde.ensemble, spde.real
         self.dim, self.n = grid.dim, grid.cells
@@ -70,8 +73,7 @@ class HybridSolver:
         self.offsets = list(itertools.product((-1, 0, 1), repeat=self.dim))  # the 3^d Chebyshev neighbours
         self.padded = tuple(m + 2 for m in self.n)  # the grid plus one layer of ghost cells per side
         self.id_bits = 32 - math.ceil(math.log2(math.prod(self.padded)))
-        if self.id_bits < 8:
-            raise ValueError(f"grid {list(self.n)} is too large for 32-bit particle ids: use fewer cells")
+        assert self.id_bits >= ID_BITS_MIN, "config.make_scene refuses such grids"
         self.periodic = tuple(lo == PERIODIC for lo, _ in grid.boundary)
         E, n = self.ensemble, self.n
         self.covered = ti.field(ti.u8, shape=(E, *n))  # 1 where the cell is in the particle region
@@ -228,6 +230,37 @@ class HybridSolver:
         return C
 
     @ti.func
+    def _tilt(self, e, C):
+        r"""Linear profile of cell ``C`` for :meth:`Walker.in_cell`: ``b_a = (q_{C+e_a} − q_{C−e_a}) / (2 q_C)``
+        clipped to [−2, 2] so the density stays ≥ 0 (centred SPDE slope; a Neumann side mirrors,
+        a Dirichlet side sees its reservoir). Zero with ``ghost_profile = 'uniform'``."""
+        b = ti.Vector.zero(self.real, self.dim)
+        if ti.static(self.linear_ghosts):
+            J = self._member(e, C)
+            qc = self.spde.q[J]
+            for a in ti.static(range(self.dim)):
+                lo, hi = J, J
+                lo[a + 1] -= 1
+                hi[a + 1] += 1
+                q_lo, q_hi = qc, qc
+                if ti.static(self.periodic[a]):
+                    lo[a + 1] = (lo[a + 1] + self.n[a]) % self.n[a]
+                    hi[a + 1] = hi[a + 1] % self.n[a]
+                    q_lo, q_hi = self.spde.q[lo], self.spde.q[hi]
+                else:
+                    if C[a] > 0:
+                        q_lo = self.spde.q[lo]
+                    elif ti.static(self.grid.boundary[a][0] == DIRICHLET):
+                        q_lo = self.real(self.grid.reservoir[a][0])
+                    if C[a] < self.n[a] - 1:
+                        q_hi = self.spde.q[hi]
+                    elif ti.static(self.grid.boundary[a][1] == DIRICHLET):
+                        q_hi = self.real(self.grid.reservoir[a][1])
+                if qc > 0:
+                    b[a] = ti.math.clamp((q_hi - q_lo) / (self.real(2.0) * qc), self.real(-2.0), self.real(2.0))
+        return b
+
+    @ti.func
     def _sample(self, pool: ti.template(), buf, e, C, lam, step, birth):
         """Append ℓ particles plus one with probability α (``lam = ℓ + α``) uniform in cell ``C``
         (paper §3) to buffer ``buf`` of member ``e``; returns how many."""
@@ -242,11 +275,14 @@ class HybridSolver:
             m = 0
         base = ti.atomic_add(pool.n[buf, e], m)
         ti.atomic_max(self.need[0], base + m)
+        tilt = ti.Vector.zero(self.real, self.dim)
+        if m > 0 and self._inside(C):
+            tilt = self._tilt(e, C)
         for k in range(m):
             if base + k < pool.capacity:
                 id0 = (lin << ti.u32(self.id_bits)) | ti.u32(k)
                 r = rng.philox4x32(ti.math.uvec4(id0, ti.u32(step), ti.u32(e), ti.u32(rng.SAMPLE_POSITION)), key)
-                pool.x[buf, e, base + k] = self.walker.in_cell(C, r)
+                pool.x[buf, e, base + k] = self.walker.in_cell(C, r, tilt)
                 pool.pid[buf, e, base + k] = ti.math.uvec2(id0, ti.u32(birth))
         return m
 

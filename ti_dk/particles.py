@@ -66,11 +66,22 @@ class Walker:
         return y, alive, clamped
 
     @ti.func
-    def in_cell(self, C, bits):
-        """A uniform position in cell ``C`` (integer vector, may lie in a ghost layer)."""
+    def in_cell(self, C, bits, tilt):
+        r"""A position in cell ``C`` (integer vector, may lie in a ghost layer).
+
+        Along each axis the offset ``u ∈ (0, 1)`` has density ``1 + b (u − ½)`` with
+        ``b = tilt[a] ∈ [−2, 2]`` (0: uniform, as in paper §3), drawn by inverting its CDF
+        ``u + b (u² − u)/2 = r`` in the cancellation-free form ``u = 2r / (c + √(c² + 2br))``,
+        ``c = 1 − b/2``.
+        """
         y = ti.Vector.zero(self.real, self.dim)
         for a in ti.static(range(self.dim)):
-            y[a] = (self.real(C[a]) + rng.uniform(bits[a], self.real)) * self.real(self.grid.dx[a])
+            r = rng.uniform(bits[a], self.real)
+            b = self.real(tilt[a])
+            c = self.real(1.0) - self.real(0.5) * b
+            u = self.real(2.0) * r / (c + ti.sqrt(ti.max(c * c + self.real(2.0) * b * r, self.real(0.0))))
+            u = ti.min(u, self.real(1.0 - 2.0**-24))  # stay inside the cell whatever the rounding
+            y[a] = (self.real(C[a]) + u) * self.real(self.grid.dx[a])
         return y
 
     @ti.func
@@ -182,7 +193,7 @@ class ParticleSolver:
                 for _ in range(m):
                     if k < self.capacity:
                         r = rng.philox4x32(ti.math.uvec4(ti.u32(k), 0, ti.u32(e), ti.u32(rng.SAMPLE_POSITION)), key)
-                        self.x[e, k] = self.walker.in_cell(C, r)
+                        self.x[e, k] = self.walker.in_cell(C, r, ti.Vector.zero(self.real, self.dim))
                     k += 1
             if k > self.capacity:
                 self.overflow[None] = 1
@@ -257,7 +268,7 @@ class ParticleSolver:
                                 id0 = lin * ti.u32(K) + ti.u32(k)
                                 r = rng.philox4x32(
                                     ti.math.uvec4(id0, step, ti.u32(e), ti.u32(rng.SAMPLE_POSITION)), key)
-                                y, alive, clamped = self.walker.move(self.walker.in_cell(C, r), e, id0, step + 1, step)
+                                y, alive, clamped = self.walker.move(self.walker.in_cell(C, r, ti.Vector.zero(self.real, self.dim)), e, id0, step + 1, step)
                                 self.clamped[None] += clamped
                                 if alive:
                                     if j < self.capacity:

@@ -52,7 +52,9 @@ def main(argv: list[str] | None = None) -> int:
     d = result.diagnostics
     print(f"{scene.name}/{scene.method}: {scene.n_steps} steps of dt = {scene.dt:.4g} to t = {result.times[-1]:.4g}, "
           f"{scene.ensemble} member(s), {result.wall_time:.2f} s; mass {d['mass'][-1]:.6g}, "
-          f"negative cells at the end {int(d['negative_cells'][-1])}; wrote {result.path}")
+          f"negative cells at the end {int(d['negative_cells'][-1])}"
+          + (f"; {d['particles'][-1]} particles after {len(result.regrids)} regrid(s)" if "particles" in d else "")
+          + f"; wrote {result.path}")
     return 0
 
 

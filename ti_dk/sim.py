@@ -96,7 +96,7 @@ def make_solver(scene: Scene, ppc: np.ndarray):
     solver = SPDESolver(gaussian=gaussian, **common)
     solver.initialize(ppc)
     if scene.method == "hybrid":
-        solver = HybridSolver(solver, scene.regrid, scene.regrid_interval, scene.seed)
+        solver = HybridSolver(solver, scene.regrid, scene.regrid_interval, scene.seed, scene.ghost_profile)
         solver.initialize()
     return solver
 
