@@ -107,7 +107,7 @@ def test_box_layout_does_not_matter_and_shared_ghosts_are_sampled_once():
         s.set_region(mask(boxes, (16, 16))[None], 0)
         # 3 particles per cell everywhere: the ghost ring gets exactly 3 per ghost cell, once each,
         # the gap column included although it borders both boxes
-        s._fill(s.pool, s.cur, 0)
+        s._fill(s.pool, s.cur, 0, s.n_ring)
         n_ghost = s.pool.n.to_numpy()[s.cur, 0] - s.n_real.to_numpy()[0]
         assert n_ghost == 3 * s.ring.to_numpy().sum() == 3 * (12 * 12 - 9 * 10)
         _run_steps(s, 30)

@@ -12,7 +12,9 @@ from .fv import SPDESolver
 from .grid import DIRICHLET, PERIODIC, cell_of, numpy_dtype
 from .particles import Walker
 
-REGRID_BIRTH = 1 << 27  # flag in the birth word of particles sampled at a regrid (ghosts carry step + 1)
+BLOCK = 256  # slots per compaction block: an exclusive scan over blocks replaces a contended atomic
+REGRID_BIRTH = 1 << 27
+TOO_MANY = 2**31 - 1  # `need` when a cell asked for more particles than an id can number  # flag in the birth word of particles sampled at a regrid (ghosts carry step + 1)
 
 
 @ti.data_oriented
@@ -23,10 +25,13 @@ class ParticlePool:
 
     def __init__(self, ensemble: int, capacity: int, dim: int, real):
         self.capacity = capacity
+        self.blocks = -(-capacity // BLOCK)  # compaction blocks per member
         self.x = ti.Vector.field(dim, real, shape=(2, ensemble, capacity))  # positions [length]
         # identity: (birth cell · 2^id_bits + index in that cell, birth word); keys the walk
         self.pid = ti.Vector.field(2, ti.u32, shape=(2, ensemble, capacity))
         self.n = ti.field(ti.i32, shape=(2, ensemble))  # occupied slots per buffer and member
+        self.keep = ti.field(ti.u8, shape=(ensemble, capacity))  # 1: the slot survives the compaction
+        self.offset = ti.field(ti.i32, shape=(ensemble, self.blocks))  # first target slot of each block
 
 
 @ti.data_oriented
@@ -79,10 +84,13 @@ class HybridSolver:
         self.covered = ti.field(ti.u8, shape=(E, *n))  # 1 where the cell is in the particle region
         self.fresh = ti.field(ti.u8, shape=(E, *n))  # the region being regridded to
         self.ring = ti.field(ti.u8, shape=(E, *self.padded))  # 1 on ghost cells (padded index = cell + 1)
+        self.ring_list = ti.field(ti.i32, shape=E * math.prod(self.padded))  # flat indices of ghost cells
+        self.cover_list = ti.field(ti.i32, shape=E * math.prod(n))  # flat indices of covered cells
+        self.n_ring, self.n_cover = 0, 0  # lengths of the two lists
         self.count = ti.field(ti.i32, shape=(E, *n))  # particles ending the walk in each covered cell
         self.dN = ti.field(ti.i32, shape=(E, *n))  # ΔN: net particles the region gave each uncovered cell
         self.n_real = ti.field(ti.i32, shape=E)  # particles of each member between steps
-        self.need = ti.field(ti.i32, shape=2)  # [most slots a member asked for, a cell asked for too many]
+        self.need = ti.field(ti.i32, shape=())  # most slots a member asked for (TOO_MANY: a cell overflowed)
         self.clamped = ti.field(ti.i64, shape=())  # axis steps clamped to ±Δx in the last walk
         self.p_inflow = ti.field(ti.i64, shape=())  # particles injected minus absorbed at Dirichlet sides
         self.wall_inflow = ti.field(ti.f64, shape=())  # SPDE boundary inflow of covered cells (cancelled)
@@ -104,17 +112,22 @@ class HybridSolver:
         self._change = 0.0
         if self.regrid_interval and n > 0 and n % self.regrid_interval == 0:
             self.regrid(n)
+        if self.n_cover == 0:  # no particle region: a plain SPDE step
+            self.spde.step(n)
+            return
         while True:  # the ghost fill is a pure function of (q^n, step): redo it in a larger pool
-            self._fill(self.pool, self.cur, n)
+            self._fill(self.pool, self.cur, n, self.n_ring)
             need = self._check_need()
             if need <= self.pool.capacity:
                 break
             self._grow(2 * need)
+            self._drop_ghosts(self.pool, self.cur)
         self.spde._fluxes(n)
         self.spde._update()
         self._walk(self.pool, self.cur, n)
+        self._compact(self.pool, self.cur)
         self.cur = 1 - self.cur
-        self._sync()
+        self._sync(self.n_cover, self.n_ring)
         self.spde._diagnose()
 
     def regrid(self, n: int) -> None:
@@ -146,8 +159,11 @@ class HybridSolver:
         self._grow(self._estimate(masks, ppc))
         self.fresh.from_numpy(masks.astype(np.uint8))
         self._regrid_apply(self.pool, self.cur, n)
+        self._compact(self.pool, self.cur)
         self.cur = 1 - self.cur
         self._ring()
+        self.n_ring = self._list(self.ring, self.ring_list)
+        self.n_cover = self._list(self.covered, self.cover_list)
         if self._check_need() > self.pool.capacity:  # the estimate bounds it; kept as a guard
             raise RuntimeError("particle pool estimate too small at a regrid")
         self._change += self.created[None] - self.removed[None]
@@ -162,8 +178,9 @@ class HybridSolver:
 
     def diagnostics(self) -> dict[str, float]:
         d = self.spde.diagnostics()
-        d["boundary_inflow"] = d["boundary_inflow"] + self.wall_inflow[None] + self.p_inflow[None]
-        d["clamped_steps"] = int(self.clamped[None])
+        if self.n_cover:  # otherwise the last step was a plain SPDE step
+            d["boundary_inflow"] = d["boundary_inflow"] + self.wall_inflow[None] + self.p_inflow[None]
+            d["clamped_steps"] = int(self.clamped[None])
         d["particles"] = int(self.n_real.to_numpy().sum(dtype=np.int64))
         d["regrid_change"] = self._change
         return d
@@ -172,15 +189,25 @@ class HybridSolver:
     def _estimate(self, masks: np.ndarray, ppc: np.ndarray) -> int:
         """Slots a member can need after a regrid: its region and ghost ring full, with headroom."""
         axes = tuple(range(1, self.dim + 1))
-        near = np.stack([regrid.grow(m, 1, self.periodic) for m in masks])
+        now = self.covered.to_numpy().astype(bool)  # particles of the old region are still in the pool
+        near = np.stack([regrid.grow(m, 1, self.periodic) for m in masks]) | now
         inside = np.ceil(np.maximum(ppc, 0) * near).sum(axis=axes)
         walls = self.grid.reservoir_ppc_max * 3 ** (self.dim - 1) * masks.sum(axis=axes) if self.grid.has_dirichlet else 0
         need = float(np.max(inside + walls)) if self.ensemble else 0.0
         return int(1.5 * need + 4 * math.sqrt(need) + 64)
 
+    @staticmethod
+    def _list(flags, out) -> int:
+        """Write the flat indices of the nonzero ``flags`` to the front of ``out``; return how many."""
+        idx = np.flatnonzero(flags.to_numpy()).astype(np.int32)
+        buf = np.zeros(out.shape, dtype=np.int32)
+        buf[:idx.size] = idx
+        out.from_numpy(buf)
+        return int(idx.size)
+
     def _check_need(self) -> int:
-        need, too_many = self.need.to_numpy()
-        if too_many:
+        need = self.need[None]
+        if need == TOO_MANY:
             raise OverflowError(
                 f"a ghost or newly covered cell holds more than {2**self.id_bits - 1} particles: "
                 "lower the density or use fewer cells")
@@ -209,6 +236,17 @@ class HybridSolver:
         J[0] = e
         for a in ti.static(range(self.dim)):
             J[a + 1] = C[a]
+        return J
+
+    @ti.func
+    def _unflatten(self, i, shape: ti.template()):
+        """The index vector of flat (C-order) index ``i`` in an array of ``shape``."""
+        d = ti.static(len(shape))
+        J = ti.Vector.zero(ti.i32, d)
+        for b in ti.static(range(d)):
+            a = ti.static(d - 1 - b)
+            J[a] = i % shape[a]
+            i //= shape[a]
         return J
 
     @ti.func
@@ -271,10 +309,10 @@ class HybridSolver:
         bits = rng.philox4x32(ti.math.uvec4(lin, ti.u32(step), ti.u32(e), ti.u32(rng.SAMPLE_COUNT)), key)
         m = self.walker.how_many(ti.max(lam, 0.0), bits[0])
         if m >= (1 << self.id_bits):
-            self.need[1] = 1
+            ti.atomic_max(self.need[None], TOO_MANY)
             m = 0
         base = ti.atomic_add(pool.n[buf, e], m)
-        ti.atomic_max(self.need[0], base + m)
+        ti.atomic_max(self.need[None], base + m)
         tilt = ti.Vector.zero(self.real, self.dim)
         if m > 0 and self._inside(C):
             tilt = self._tilt(e, C)
@@ -317,36 +355,34 @@ class HybridSolver:
             self.ring[I] = ti.u8(r)
 
     @ti.kernel
-    def _fill(self, pool: ti.template(), cur: ti.i32, step: ti.i32):
+    def _fill(self, pool: ti.template(), cur: ti.i32, step: ti.i32, n_ring: ti.i32):
         """Step 1: ghost particles from q^n (or the reservoir) appended after the real ones."""
         vol = ti.static(self.grid.cell_volume)
-        self.need[0] = 0
-        self.need[1] = 0
+        self.need[None] = 0
+        for i in range(n_ring):
+            I = self._unflatten(self.ring_list[i], ti.static(self.ring.shape))
+            C = ti.Vector([I[a + 1] - 1 for a in ti.static(range(self.dim))])
+            lam = 0.0
+            if self._inside(C):
+                lam = ti.cast(self.spde.q[self._member(I[0], C)], ti.f64) * vol
+            else:
+                for a in ti.static(range(self.dim)):
+                    if C[a] < 0:
+                        lam = self.grid.reservoir[a][0] * vol
+                    elif C[a] >= self.n[a]:
+                        lam = self.grid.reservoir[a][1] * vol
+            self._sample(pool, cur, I[0], C, lam, step, step + 1)
+
+    @ti.kernel
+    def _drop_ghosts(self, pool: ti.template(), cur: ti.i32):
         for e in range(self.ensemble):
             pool.n[cur, e] = self.n_real[e]
-            ti.atomic_max(self.need[0], self.n_real[e])
-        for I in ti.grouped(self.ring):
-            if self.ring[I]:
-                C = ti.Vector([I[a + 1] - 1 for a in ti.static(range(self.dim))])
-                lam = 0.0
-                if self._inside(C):
-                    lam = ti.cast(self.spde.q[self._member(I[0], C)], ti.f64) * vol
-                else:
-                    for a in ti.static(range(self.dim)):
-                        if C[a] < 0:
-                            lam = self.grid.reservoir[a][0] * vol
-                        elif C[a] >= self.n[a]:
-                            lam = self.grid.reservoir[a][1] * vol
-                self._sample(pool, cur, I[0], C, lam, step, step + 1)
 
     @ti.kernel
     def _walk(self, pool: ti.template(), cur: ti.i32, step: ti.i32):
         """Step 3: walk, keep what ends in the region (compacted into the other buffer), count ΔN."""
-        nxt = 1 - cur
         self.clamped[None] = 0
         self.p_inflow[None] = 0
-        for e in range(self.ensemble):
-            pool.n[nxt, e] = 0
         for e, p in ti.ndrange(self.ensemble, pool.capacity):
             if p < pool.n[cur, e]:
                 ident = pool.pid[cur, e, p]
@@ -360,10 +396,9 @@ class HybridSolver:
                     for a in ti.static(range(self.dim)):
                         D[a + 1] = cell_of(y[a], self.real(self.grid.dx[a]), self.n[a])
                     keep = self.covered[D] != 0
+                pool.x[cur, e, p] = y
+                pool.keep[e, p] = ti.u8(keep)
                 if keep:
-                    slot = ti.atomic_add(pool.n[nxt, e], 1)
-                    pool.x[nxt, e, slot] = y
-                    pool.pid[nxt, e, slot] = ident
                     self.count[D] += 1
                     if ghost:
                         O = self._origin(ident[0])
@@ -376,82 +411,109 @@ class HybridSolver:
                         self.dN[D] += 1
                     else:
                         self.p_inflow[None] -= 1
-        for e in range(self.ensemble):
-            self.n_real[e] = pool.n[nxt, e]
 
     @ti.kernel
-    def _sync(self):
+    def _compact(self, pool: ti.template(), cur: ti.i32):
+        """Copy the slots marked ``keep`` of buffer ``cur`` to the front of the other buffer, in
+        order: per-block counts, an exclusive scan over blocks, then a scatter."""
+        nxt = 1 - cur
+        for e, b in ti.ndrange(self.ensemble, pool.blocks):
+            c = 0
+            for p in range(b * BLOCK, ti.min(b * BLOCK + BLOCK, pool.n[cur, e])):
+                c += ti.cast(pool.keep[e, p], ti.i32)
+            pool.offset[e, b] = c
+        for e in range(self.ensemble):
+            total = 0
+            for b in range(pool.blocks):
+                c = pool.offset[e, b]
+                pool.offset[e, b] = total
+                total += c
+            pool.n[nxt, e] = total
+            self.n_real[e] = total
+        for e, b in ti.ndrange(self.ensemble, pool.blocks):
+            j = pool.offset[e, b]
+            for p in range(b * BLOCK, ti.min(b * BLOCK + BLOCK, pool.n[cur, e])):
+                if pool.keep[e, p]:
+                    pool.x[nxt, e, j] = pool.x[cur, e, p]
+                    pool.pid[nxt, e, j] = pool.pid[cur, e, p]
+                    j += 1
+
+    @ti.kernel
+    def _sync(self, n_cover: ti.i32, n_ring: ti.i32):
         """Step 4: covered cells take their counts; ring cells swap S1 fluxes for ΔN (eq. 12)."""
-        vol = ti.static(self.grid.cell_volume)
         self.wall_inflow[None] = 0.0
-        for J in ti.grouped(self.covered):
-            if self.covered[J]:
-                self.spde.q[J] = self.real(ti.cast(self.count[J], ti.f64) / vol)
-                self.count[J] = 0
-                if ti.static(self.grid.has_dirichlet):  # the SPDE's boundary flux of this cell did not happen
-                    for a in ti.static(range(self.dim)):
-                        area = ti.static(self.grid.face_area[a] * self.dt)
-                        if ti.static(self.grid.boundary[a][0] == DIRICHLET):
-                            if J[a + 1] == 0:
-                                self.wall_inflow[None] += ti.cast(self.spde.flux[J][a], ti.f64) * area
-                        if ti.static(self.grid.boundary[a][1] == DIRICHLET):
-                            if J[a + 1] == self.n[a] - 1:
-                                self.wall_inflow[None] -= ti.cast(self.spde.flux[self.spde._upper(J, a)][a], ti.f64) * area
+        for i in range(n_cover + n_ring):  # one parallel loop: covered cells, then ring cells
+            if i < n_cover:
+                self._take_count(self._unflatten(self.cover_list[i], ti.static(self.covered.shape)))
             else:
-                P = J + 1
-                P[0] = J[0]
-                if self.ring[P]:
-                    corr = self.real(0.0)
-                    for a in ti.static(range(self.dim)):
-                        u = ti.Vector.unit(self.dim + 1, a + 1, ti.i32)
-                        lo, hi = J - u, J + u
-                        has_lo, has_hi = J[a + 1] > 0, J[a + 1] < self.n[a] - 1
-                        if ti.static(self.periodic[a]):
-                            lo[a + 1] = (lo[a + 1] + self.n[a]) % self.n[a]
-                            hi[a + 1] = hi[a + 1] % self.n[a]
-                            has_lo, has_hi = True, True
-                        k = self.real(self.dt / self.grid.dx[a])
-                        # S1: undo the terms ∓ Δt F / Δx_a that eq. (9) applied across faces shared with
-                        # covered cells (F is positive down the axis: F = ½ Δq/Δx + noise)
-                        if has_lo and self.covered[lo]:
-                            corr += k * self.spde.flux[J][a]
-                        if has_hi and self.covered[hi]:
-                            corr -= k * self.spde.flux[self.spde._upper(J, a)][a]
-                    self.spde.q[J] += corr + self.real(ti.cast(self.dN[J], ti.f64) / vol)  # S2
-                    self.dN[J] = 0
+                self._reflux(self._unflatten(self.ring_list[i - n_cover], ti.static(self.ring.shape)))
+
+    @ti.func
+    def _take_count(self, J):
+        """Synchronise covered cell ``J``: q = N / V_c."""
+        vol = ti.static(self.grid.cell_volume)
+        self.spde.q[J] = self.real(ti.cast(self.count[J], ti.f64) / vol)
+        self.count[J] = 0
+        if ti.static(self.grid.has_dirichlet):  # the SPDE's boundary flux of this cell did not happen
+            for a in ti.static(range(self.dim)):
+                area = ti.static(self.grid.face_area[a] * self.dt)
+                if ti.static(self.grid.boundary[a][0] == DIRICHLET):
+                    if J[a + 1] == 0:
+                        self.wall_inflow[None] += ti.cast(self.spde.flux[J][a], ti.f64) * area
+                if ti.static(self.grid.boundary[a][1] == DIRICHLET):
+                    if J[a + 1] == self.n[a] - 1:
+                        self.wall_inflow[None] -= ti.cast(self.spde.flux[self.spde._upper(J, a)][a], ti.f64) * area
+
+    @ti.func
+    def _reflux(self, P):
+        """Synchronise ghost cell ``P`` (padded index), if in the domain: S1 and S2 of eq. (12)."""
+        vol = ti.static(self.grid.cell_volume)
+        J = P - 1
+        J[0] = P[0]
+        if self._inside(ti.Vector([J[a + 1] for a in ti.static(range(self.dim))])):
+            corr = self.real(0.0)
+            for a in ti.static(range(self.dim)):
+                u = ti.Vector.unit(self.dim + 1, a + 1, ti.i32)
+                lo, hi = J - u, J + u
+                has_lo, has_hi = J[a + 1] > 0, J[a + 1] < self.n[a] - 1
+                if ti.static(self.periodic[a]):
+                    lo[a + 1] = (lo[a + 1] + self.n[a]) % self.n[a]
+                    hi[a + 1] = hi[a + 1] % self.n[a]
+                    has_lo, has_hi = True, True
+                k = self.real(self.dt / self.grid.dx[a])
+                # S1: undo the terms ∓ Δt F / Δx_a that eq. (9) applied across faces shared with
+                # covered cells (F is positive down the axis: F = ½ Δq/Δx + noise)
+                if has_lo and self.covered[lo]:
+                    corr += k * self.spde.flux[J][a]
+                if has_hi and self.covered[hi]:
+                    corr -= k * self.spde.flux[self.spde._upper(J, a)][a]
+            self.spde.q[J] += corr + self.real(ti.cast(self.dN[J], ti.f64) / vol)  # S2
+            self.dN[J] = 0
 
     @ti.kernel
     def _regrid_apply(self, pool: ti.template(), cur: ti.i32, step: ti.i32):
         """Move to the region in ``fresh``: keep particles still covered, sample newly covered cells."""
         vol = ti.static(self.grid.cell_volume)
-        nxt = 1 - cur
-        self.need[0] = 0
-        self.need[1] = 0
+        self.need[None] = 0
         self.created[None] = 0
         self.removed[None] = 0.0
-        for e in range(self.ensemble):
-            pool.n[nxt, e] = 0
-        for e, p in ti.ndrange(self.ensemble, pool.capacity):
-            if p < pool.n[cur, e]:
-                D = ti.Vector.zero(ti.i32, self.dim + 1)
-                D[0] = e
-                y = pool.x[cur, e, p]
-                for a in ti.static(range(self.dim)):
-                    D[a + 1] = cell_of(y[a], self.real(self.grid.dx[a]), self.n[a])
-                if self.fresh[D]:
-                    slot = ti.atomic_add(pool.n[nxt, e], 1)
-                    ti.atomic_max(self.need[0], slot + 1)
-                    pool.x[nxt, e, slot] = y
-                    pool.pid[nxt, e, slot] = pool.pid[cur, e, p]
         for J in ti.grouped(self.covered):
             if self.fresh[J] and not self.covered[J]:
                 C = ti.Vector([J[a + 1] for a in ti.static(range(self.dim))])
                 lam = ti.cast(self.spde.q[J], ti.f64) * vol
-                m = self._sample(pool, nxt, J[0], C, lam, step, step | REGRID_BIRTH)
+                m = self._sample(pool, cur, J[0], C, lam, step, step | REGRID_BIRTH)
                 self.created[None] += m
                 self.removed[None] += lam
-                self.spde.q[J] = self.real(ti.cast(m, ti.f64) / vol)
+                self.count[J] = m  # q is set below: the tilts of other cells read it here
         for J in ti.grouped(self.covered):
+            if self.fresh[J] and not self.covered[J]:
+                self.spde.q[J] = self.real(ti.cast(self.count[J], ti.f64) / vol)
+                self.count[J] = 0
             self.covered[J] = self.fresh[J]
-        for e in range(self.ensemble):
-            self.n_real[e] = pool.n[nxt, e]
+        for e, p in ti.ndrange(self.ensemble, pool.capacity):  # keep what the new region covers
+            if p < pool.n[cur, e]:
+                D = ti.Vector.zero(ti.i32, self.dim + 1)
+                D[0] = e
+                for a in ti.static(range(self.dim)):
+                    D[a + 1] = cell_of(pool.x[cur, e, p][a], self.real(self.grid.dx[a]), self.n[a])
+                pool.keep[e, p] = self.covered[D]
