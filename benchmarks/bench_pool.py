@@ -1,0 +1,132 @@
+"""Particle storage for the hybrid: a sparse pool against the flat pool ti_dk uses.
+
+    python benchmarks/bench_pool.py [--cells 256] [--ppc 5] [--fraction 0.1] [--reps 20]
+
+Both layouts do what a hybrid step asks of its store: move every particle of a square region
+(``fraction`` of a 2D periodic grid) with the same clamped walk, drop those that leave the
+region, and leave the survivors ready for the next step.
+
+- sparse: ``pointer`` blocks of 8×8 cells, each with a ``dynamic`` list, double-buffered (a
+  ``dynamic`` list cannot remove); a step appends each survivor to its destination block in the
+  other buffer, then deactivates the old buffer. Memory follows the occupied blocks.
+- flat (ti_dk.hybrid.ParticlePool): one array per member, survivors marked in place and compacted
+  by a blocked exclusive scan into the other buffer; capacity sized from the region.
+
+Prints particle steps per second for both.
+"""
+import argparse
+import math
+import time
+
+import numpy as np
+import taichi as ti
+
+import ti_dk
+from ti_dk import load_scene
+from ti_dk.grid import Grid
+from ti_dk.particles import Walker
+
+BLK = 8
+
+
+@ti.data_oriented
+class SparsePool:
+    def __init__(self, cells: int, max_per_block: int):
+        nb = cells // BLK
+        self.bufs = []
+        for _ in range(2):
+            p = ti.Vector.field(4, ti.f64)  # x, y, id, birth
+            node = ti.root.pointer(ti.ij, (nb, nb)).dynamic(ti.k, max_per_block, chunk_size=64)
+            node.place(p)
+            self.bufs.append((p, node))
+
+    @ti.kernel
+    def seed(self, p: ti.template(), lo: ti.i32, hi: ti.i32, ppc: ti.i32, h: ti.f64):
+        for i, j in ti.ndrange((lo, hi), (lo, hi)):
+            for k in range(ppc):
+                ti.append(p.parent(), [i // BLK, j // BLK],
+                          ti.Vector([(i + ti.random()) * h, (j + ti.random()) * h, (i * 4096 + j) * 64 + k, 0.0]))
+
+    @ti.kernel
+    def step(self, walker: ti.template(), src: ti.template(), dst: ti.template(), lo: ti.i32, hi: ti.i32,
+             n: ti.i32, h: ti.f64):
+        for bi, bj, k in src:
+            v = src[bi, bj, k]
+            y, alive, _ = walker.move(ti.Vector([v[0], v[1]]), 0, ti.u32(v[2]), ti.u32(v[3]), ti.u32(n))
+            ci, cj = ti.cast(ti.floor(y[0] / h), ti.i32), ti.cast(ti.floor(y[1] / h), ti.i32)
+            if lo <= ci < hi and lo <= cj < hi:
+                ti.append(dst.parent(), [ci // BLK, cj // BLK], ti.Vector([y[0], y[1], v[2], v[3]]))
+
+    @ti.kernel
+    def count(self, p: ti.template()) -> ti.i64:
+        c = ti.i64(0)
+        for bi, bj, k in p:
+            c += 1
+        return c
+
+
+def run_sparse(grid, dt, cells, lo, hi, ppc, reps):
+    walker = Walker(grid, dt, ti.f64, 1)
+    pool = SparsePool(cells, 64 * BLK * BLK * ppc)
+    (a, na), (b, nb) = pool.bufs
+    h = 1.0 / cells
+    pool.seed(a, lo, hi, ppc, h)
+    total = 0
+    t = None
+    for n in range(reps + 3):
+        if n == 3:  # after two warm-up steps (JIT of both buffers' kernels)
+            ti.sync()
+            t = time.perf_counter()
+        total += pool.count(a) if n >= 3 else 0
+        pool.step(walker, a, b, lo, hi, n, h)
+        na.deactivate_all()  # the whole buffer: its particles now live in the other one
+        (a, na), (b, nb) = (b, nb), (a, na)
+    ti.sync()
+    return total / (time.perf_counter() - t)
+
+
+def run_flat(cells, fraction, ppc, reps):
+    scene = load_scene("equilibrium1d", method="hybrid", cells=[cells, cells], init="uniform", ppc=ppc,
+                       regrid_interval=0, threshold=1e-9, t_equil=None, histogram=None, ensemble=1)
+    from ti_dk import initial
+    from ti_dk.sim import make_solver
+    from bench_hybrid import centred_box
+
+    s = make_solver(scene, initial.density_ppc(scene.init, scene.params, scene.cells, scene.lengths))
+    s.set_region(centred_box((cells, cells), fraction)[None], 0)
+    total = 0
+    t = None
+    for n in range(reps + 3):  # walk + compaction only (no ghosts), as for the sparse pool
+        if n == 3:  # after two warm-up steps
+            ti.sync()
+            t = time.perf_counter()
+        total += int(s.n_real.to_numpy()[0]) if n >= 3 else 0
+        s._walk(s.pool, s.cur, n)
+        s._compact(s.pool, s.cur)
+        s.cur = 1 - s.cur
+        s._sync(s.n_cover, 0)
+    ti.sync()
+    return total / (time.perf_counter() - t)
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--cells", type=int, default=256)
+    ap.add_argument("--ppc", type=int, default=5)
+    ap.add_argument("--fraction", type=float, default=0.1)
+    ap.add_argument("--reps", type=int, default=20)
+    args = ap.parse_args()
+    ti_dk.init("cpu")
+    side = max(BLK, round(args.cells * math.sqrt(args.fraction)))
+    lo, hi = (args.cells - side) // 2, (args.cells - side) // 2 + side
+    grid = Grid((args.cells,) * 2, (1.0, 1.0), ((0, 0), (0, 0)), ((0.0, 0.0), (0.0, 0.0)))
+    dt = 0.0625 / args.cells**2
+    flat = run_flat(args.cells, args.fraction, args.ppc, args.reps)
+    sparse = run_sparse(grid, dt, args.cells, lo, hi, args.ppc, args.reps)
+    print(f"{args.cells}² grid, {args.fraction:.0%} covered, {args.ppc} ppc: "
+          f"flat {flat / 1e6:.1f} M particle-steps/s, sparse pointer+dynamic {sparse / 1e6:.1f} M particle-steps/s "
+          f"(flat/sparse = {flat / sparse:.2f})")
+
+
+if __name__ == "__main__":
+    main()
