@@ -74,6 +74,8 @@ class Scene:
     particle_init: str = "per_cell"
     spde: str = "fv"
     ghost_profile: str = "linear"
+    compare: str | None = None  # a second method run on the same initial condition, drawn beside
+    movie_frames: int = 48  # frames evenly spaced in time when a movie is asked for
     regrid_interval: int = 10
     buffer: int = 1
     grid_efficiency: float = 0.7
@@ -257,7 +259,12 @@ def make_scene(flat: dict[str, Any]) -> Scene:
     for key in ("C", "t_end", "threshold"):
         if key in flat:
             kw[key] = _number(key, flat[key])
-    for key in ("ensemble", "sample_every", "min_box", "max_box"):
+    if flat.get("compare") not in (None, "none"):
+        if flat["compare"] not in METHODS:
+            raise ConfigError(f"compare = {flat['compare']!r}: use one of {', '.join(METHODS)}, or none")
+        if flat["compare"] != kw.get("method", _FIELDS["method"].default):  # comparing with itself: nothing
+            kw["compare"] = flat["compare"]
+    for key in ("ensemble", "sample_every", "min_box", "max_box", "movie_frames"):
         if key in flat:
             kw[key] = _int(key, flat[key], minimum=1)
     for key in ("regrid_interval", "buffer"):

@@ -63,6 +63,16 @@ class SPDESolver:
         self._update()
         self._diagnose()
 
+    def state(self) -> dict[str, np.ndarray]:
+        """The fields a checkpoint needs to continue bit for bit."""
+        return {"q": self.q.to_numpy(), **({"qbar": self.qbar.to_numpy()} if self.gaussian else {})}
+
+    def load_state(self, st: dict[str, np.ndarray]) -> None:
+        self.q.from_numpy(st["q"])
+        if self.gaussian:
+            self.qbar.from_numpy(st["qbar"])
+        self._diagnose()
+
     def density(self) -> np.ndarray:
         """Number density of every member, ``(ensemble, *cells)``, float64."""
         return self.q.to_numpy().astype(np.float64, copy=False)

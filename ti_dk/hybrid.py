@@ -2,6 +2,7 @@
 
 import itertools
 import math
+import time
 
 import numpy as np
 import taichi as ti
@@ -15,6 +16,12 @@ from .particles import Walker
 BLOCK = 256  # slots per compaction block: an exclusive scan over blocks replaces a contended atomic
 REGRID_BIRTH = 1 << 27
 TOO_MANY = 2**31 - 1  # `need` when a cell asked for more particles than an id can number  # flag in the birth word of particles sampled at a regrid (ghosts carry step + 1)
+
+
+def _clock() -> float:
+    """Seconds, after the device has finished what was launched (kernels may run asynchronously)."""
+    ti.sync()
+    return time.perf_counter()
 
 
 @ti.data_oriented
@@ -101,6 +108,7 @@ class HybridSolver:
         self.boxes: list[list[regrid.Box]] = [[] for _ in range(E)]  # each member's region
         self.regrids: list[dict] = []  # one record per regrid
         self._change = 0.0  # created − removed at this step's regrid
+        self.timing = {"spde": 0.0, "particles": 0.0, "regrid": 0.0}  # seconds spent in each part
 
     # -- public -------------------------------------------------------------------------
     def initialize(self) -> None:
@@ -111,9 +119,13 @@ class HybridSolver:
         """Advance from step ``n`` to ``n + 1`` (see the class docstring)."""
         self._change = 0.0
         if self.regrid_interval and n > 0 and n % self.regrid_interval == 0:
+            t = _clock()
             self.regrid(n)
+            self.timing["regrid"] += _clock() - t
+        t0 = _clock()
         if self.n_cover == 0:  # no particle region: a plain SPDE step
             self.spde.step(n)
+            self.timing["spde"] += _clock() - t0
             return
         while True:  # the ghost fill is a pure function of (q^n, step): redo it in a larger pool
             self._fill(self.pool, self.cur, n, self.n_ring)
@@ -122,13 +134,18 @@ class HybridSolver:
                 break
             self._grow(2 * need)
             self._drop_ghosts(self.pool, self.cur)
+        t1 = _clock()
         self.spde._fluxes(n)
         self.spde._update()
+        t2 = _clock()
         self._walk(self.pool, self.cur, n)
         self._compact(self.pool, self.cur)
         self.cur = 1 - self.cur
         self._sync(self.n_cover, self.n_ring)
         self.spde._diagnose()
+        t3 = _clock()
+        self.timing["spde"] += t2 - t1
+        self.timing["particles"] += (t1 - t0) + (t3 - t2)
 
     def regrid(self, n: int) -> None:
         """New region from the SPDE density at step ``n`` (tag, buffer, Berger–Rigoutsos)."""
@@ -168,6 +185,42 @@ class HybridSolver:
             raise RuntimeError("particle pool estimate too small at a regrid")
         self._change += self.created[None] - self.removed[None]
         self.spde._diagnose()
+
+    def state(self) -> dict[str, np.ndarray]:
+        """SPDE fields, region, boxes, regrid log and the particles (compacted, with their ids)."""
+        n = self.n_real.to_numpy()
+        top = max(1, int(n.max()))
+        boxes = [(e, *lo, *hi) for e, bs in enumerate(self.boxes) for lo, hi in bs]
+        st = {f"spde_{k}": v for k, v in self.spde.state().items()}
+        st |= {"covered": self.covered.to_numpy(), "n_real": n,
+               "x": self.pool.x.to_numpy()[self.cur, :, :top], "pid": self.pool.pid.to_numpy()[self.cur, :, :top],
+               "boxes": np.array(boxes, dtype=np.int64).reshape(-1, 1 + 2 * self.dim)}
+        for k in ("step", "boxes", "covered_cells", "efficiency", "created", "removed"):
+            st[f"regrid_{k}"] = np.array([r[k] for r in self.regrids])
+        return st
+
+    def load_state(self, st: dict[str, np.ndarray]) -> None:
+        self.spde.load_state({k[5:]: v for k, v in st.items() if k.startswith("spde_")})
+        n, x, pid = st["n_real"], st["x"], st["pid"]
+        self._grow(max(self.pool.capacity, int(1.5 * x.shape[1]) + 64))
+        cap = self.pool.capacity
+        px = np.zeros((2, self.ensemble, cap, self.dim), dtype=numpy_dtype(self.real))
+        ppid = np.zeros((2, self.ensemble, cap, 2), dtype=np.uint32)
+        px[0, :, :x.shape[1]], ppid[0, :, :x.shape[1]] = x, pid
+        self.pool.x.from_numpy(px)
+        self.pool.pid.from_numpy(ppid)
+        self.pool.n.from_numpy(np.stack([n, np.zeros_like(n)]).astype(np.int32))
+        self.n_real.from_numpy(n.astype(np.int32))
+        self.cur = 0
+        self.covered.from_numpy(st["covered"])
+        self._ring()
+        self.n_ring = self._list(self.ring, self.ring_list)
+        self.n_cover = self._list(self.covered, self.cover_list)
+        self.boxes = [[] for _ in range(self.ensemble)]
+        for row in st["boxes"]:
+            self.boxes[row[0]].append((tuple(int(v) for v in row[1:1 + self.dim]), tuple(int(v) for v in row[1 + self.dim:])))
+        keys = ("step", "boxes", "covered_cells", "efficiency", "created", "removed")
+        self.regrids = [{k: st[f"regrid_{k}"][i].item() for k in keys} for i in range(len(st["regrid_step"]))]
 
     def density(self) -> np.ndarray:
         return self.spde.density()

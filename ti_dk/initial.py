@@ -32,7 +32,20 @@ def ellipses(x, ppc_outer: float = 30.0, ppc_inner: float = 15.0, outer_r: float
     return np.where(outer, ppc_outer, np.where(inner, ppc_inner, 0.0))
 
 
-REGISTRY = {f.__name__: f for f in (uniform, void, ellipses)}
+def spheres(x, ppc_outer: float = 30.0, ppc_inner: float = 15.0, outer_r: float = 0.4, inner_r: float = 0.1,
+            inner_x: float = 0.1, inner_y: float = 0.2, inner_z: float = 0.0):
+    """A void sphere holding a smaller offset sphere, in the unit cube (paper Fig. 7).
+
+    From the centre (0.5, 0.5, 0.5): ``ppc_outer`` where x² + y² + z² > outer_r², else
+    ``ppc_inner`` where (x − inner_x)² + (y − inner_y)² + (z − inner_z)² < inner_r², else empty.
+    """
+    u, v, w = (a - 0.5 for a in x)
+    outer = u**2 + v**2 + w**2 > outer_r**2
+    inner = (u - inner_x) ** 2 + (v - inner_y) ** 2 + (w - inner_z) ** 2 < inner_r**2
+    return np.where(outer, ppc_outer, np.where(inner, ppc_inner, 0.0))
+
+
+REGISTRY = {f.__name__: f for f in (uniform, void, ellipses, spheres)}
 
 
 def density_ppc(name: str, params: dict, cells, lengths) -> np.ndarray:

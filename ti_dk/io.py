@@ -96,3 +96,73 @@ class RunFile:
             self.h5.attrs["error"] = error
         self.h5.attrs["complete"] = error is None
         self.h5.close()
+
+
+def _b(text: str) -> np.bytes_:
+    """openPMD string attributes as fixed-length bytes (what yt and openPMD-viewer expect)."""
+    return np.bytes_(text.encode())
+
+
+def write_openpmd(directory: Path, iteration: int, t: float, dt: float, grid, density: np.ndarray,
+                  region: np.ndarray | None = None, positions: np.ndarray | None = None,
+                  ids: np.ndarray | None = None, boxes: np.ndarray | None = None) -> Path:
+    """One openPMD 1.1.0 snapshot (file-based: ``data<iteration>.h5``) of one ensemble member.
+
+    Meshes ``density`` (number density), ``negative_cells`` and, for the hybrid,
+    ``particle_region`` (1 where covered); species ``particles`` with ``position`` and ``id``;
+    the box list as ``/ti_dk/boxes`` (rows: lo..., hi... in cells), outside the base path.
+    Written to a temporary name and renamed, so a snapshot on disk is always whole.
+    """
+    from . import __version__
+
+    directory.mkdir(parents=True, exist_ok=True)
+    path = directory / f"data{iteration:06d}.h5"
+    tmp = path.with_suffix(".h5.tmp")
+    d = grid.dim
+    labels = [_b(a) for a in "xyz"[:d]]
+    with h5py.File(tmp, "w") as f:
+        a = f.attrs
+        a["openPMD"], a["openPMDextension"] = _b("1.1.0"), np.uint32(0)
+        a["basePath"], a["meshesPath"], a["particlesPath"] = _b("/data/%T/"), _b("meshes/"), _b("particles/")
+        a["iterationEncoding"], a["iterationFormat"] = _b("fileBased"), _b("data%06T.h5")
+        a["software"], a["softwareVersion"] = _b("ti_dk"), _b(__version__)
+        a["date"] = _b(time.strftime("%Y-%m-%d %H:%M:%S %z"))
+        it = f.create_group(f"data/{iteration}")
+        it.attrs["time"], it.attrs["dt"], it.attrs["timeUnitSI"] = float(t), float(dt), 1.0
+        meshes = it.create_group("meshes")
+        fields = {"density": (density, -d), "negative_cells": ((density < 0).astype(np.uint8), 0)}
+        if region is not None:
+            fields["particle_region"] = (region.astype(np.uint8), 0)
+        for name, (data, length_power) in fields.items():
+            ds = meshes.create_dataset(name, data=data)
+            ds.attrs["unitDimension"] = np.array([length_power, 0, 0, 0, 0, 0, 0], dtype=np.float64)
+            ds.attrs["timeOffset"] = np.float32(0.0)
+            ds.attrs["geometry"], ds.attrs["dataOrder"] = _b("cartesian"), _b("C")
+            ds.attrs["axisLabels"] = np.array(labels)
+            ds.attrs["gridSpacing"] = np.array(grid.dx, dtype=np.float64)
+            ds.attrs["gridGlobalOffset"] = np.zeros(d)
+            ds.attrs["gridUnitSI"], ds.attrs["unitSI"] = 1.0, 1.0
+            ds.attrs["position"] = np.full(d, 0.5)
+        if positions is not None:
+            sp = it.create_group("particles/particles")
+            n = positions.shape[0]
+            for rec, power in (("position", 1), ("positionOffset", 1), ("id", 0)):
+                g = sp.create_group(rec) if rec != "id" else None
+                if rec == "id":
+                    g = sp.create_dataset("id", data=np.asarray(ids, dtype=np.uint64))
+                    g.attrs["unitSI"] = 1.0
+                else:
+                    for k, axis in enumerate("xyz"[:d]):
+                        if rec == "position":
+                            c = g.create_dataset(axis, data=np.asarray(positions[:, k], dtype=np.float64))
+                        else:
+                            c = g.create_group(axis)
+                            c.attrs["value"], c.attrs["shape"] = 0.0, np.array([n], dtype=np.uint64)
+                        c.attrs["unitSI"] = 1.0
+                g.attrs["unitDimension"] = np.array([power, 0, 0, 0, 0, 0, 0], dtype=np.float64)
+                g.attrs["timeOffset"] = np.float32(0.0)
+        if boxes is not None:
+            f.create_dataset("ti_dk/boxes", data=boxes)
+            f["ti_dk"].attrs["columns"] = _b("lo (one per axis), hi (one per axis), in cells; hi exclusive")
+    tmp.replace(path)
+    return path

@@ -157,6 +157,17 @@ class ParticleSolver:
             self._exchange(n)
             self._check_overflow()
 
+    def state(self) -> dict[str, np.ndarray]:
+        """The particles a checkpoint needs to continue bit for bit."""
+        st = {"x": self.x.to_numpy(), "n_alive": self.n_alive.to_numpy()}
+        return st | ({"pid": self.pid.to_numpy()} if self.grid.has_dirichlet else {})
+
+    def load_state(self, st: dict[str, np.ndarray]) -> None:
+        self.x.from_numpy(st["x"])
+        self.n_alive.from_numpy(st["n_alive"])
+        if self.grid.has_dirichlet:
+            self.pid.from_numpy(st["pid"])
+
     def density(self) -> np.ndarray:
         """Number density of every member, ``(ensemble, *cells)``: counts / V_c, float64."""
         self._bin()

@@ -5,6 +5,7 @@ Bad input exits with status 2 and one line saying what to change; no file is wri
 from __future__ import annotations
 
 import argparse
+import signal
 import sys
 import warnings
 
@@ -25,6 +26,14 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--arch", default="cpu", help="Taichi backend: cpu or cuda")
     p.add_argument("--threads", type=int, help="CPU threads (default: all cores)")
     p.add_argument("--no-progress", action="store_true", help="hide the progress bar")
+    p.add_argument("--quick", action="store_true", help="a seconds-long preview: a quarter of the cells per axis")
+    p.add_argument("--no-frames", action="store_true", help="write no PNG frames (2D/3D scenes)")
+    p.add_argument("--movie", action="store_true",
+                   help="also write movie_frames evenly spaced frames and an MP4 (GIF without imageio-ffmpeg)")
+    p.add_argument("--no-snapshots", action="store_true", help="write no openPMD snapshots (2D/3D scenes)")
+    p.add_argument("--checkpoint-every", type=int, default=0, metavar="K",
+                   help="write <scene>_<method>_checkpoint.h5 every K steps (0: never)")
+    p.add_argument("--restart", metavar="FILE", help="continue from a checkpoint written by --checkpoint-every")
     return p.parse_args(argv)
 
 
@@ -39,28 +48,50 @@ def main(argv: list[str] | None = None) -> int:
     for key in ("method", "ensemble", "seed", "t_end"):
         if getattr(args, key) is not None:
             overrides[key] = getattr(args, key)
+    if args.checkpoint_every < 0:
+        return _fail(f"--checkpoint-every {args.checkpoint_every}: give a number of steps >= 0")
+    signal.signal(signal.SIGTERM, _terminate)
     try:
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always", config.ClampWarning)
             scene = config.load_scene(args.scene, **overrides)
+            if args.quick and "cells" not in overrides:
+                scene = config.load_scene(args.scene, **overrides, cells=[max(8, n // 4) for n in scene.cells])
         for w in caught:
             print(f"ti_dk: warning: {w.message}", file=sys.stderr)
         sim.init(args.arch, args.threads)
-        result = sim.run(scene, out=args.out, progress=not args.no_progress)
+        result = sim.run(scene, out=args.out, progress=not args.no_progress, frames=not args.no_frames,
+                         movie=args.movie, snapshots=not args.no_snapshots, checkpoint_every=args.checkpoint_every,
+                         restart=args.restart)
     except (config.ConfigError, sim.SimulationError) as exc:
         return _fail(str(exc))
+    except Terminated:
+        ckpt = " (resume with --restart and the latest checkpoint)" if args.checkpoint_every else ""
+        return _fail(f"stopped by SIGTERM; the output file is marked incomplete{ckpt}", 143)
     d = result.diagnostics
     print(f"{scene.name}/{scene.method}: {scene.n_steps} steps of dt = {scene.dt:.4g} to t = {result.times[-1]:.4g}, "
           f"{scene.ensemble} member(s), {result.wall_time:.2f} s; mass {d['mass'][-1]:.6g}, "
           f"negative cells at the end {int(d['negative_cells'][-1])}"
           + (f"; {d['particles'][-1]} particles after {len(result.regrids)} regrid(s)" if "particles" in d else "")
           + f"; wrote {result.path}")
+    parts = ", ".join(f"{k} {v:.2f} s" for k, v in result.timing.items() if k != "total")
+    print(f"time: {parts}")
+    if result.frames:
+        print(f"frames: {len(result.frames)} in {result.frames[0].parent}")
     return 0
 
 
-def _fail(message: str) -> int:
+class Terminated(Exception):
+    """SIGTERM arrived: unwind so the output file is closed and marked incomplete."""
+
+
+def _terminate(signum, frame):
+    raise Terminated()
+
+
+def _fail(message: str, status: int = 2) -> int:
     print(f"ti_dk: error: {message}", file=sys.stderr)
-    return 2
+    return status
 
 
 if __name__ == "__main__":

@@ -2,12 +2,15 @@
 from __future__ import annotations
 
 import ctypes
+import dataclasses
+import json
 import math
 import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import h5py
 import numpy as np
 import taichi as ti
 from tqdm import tqdm
@@ -17,7 +20,7 @@ from .config import ConfigError, Scene
 from .fv import SPDESolver
 from .grid import Grid
 from .hybrid import HybridSolver
-from .io import RunFile
+from .io import RunFile, write_openpmd
 from .particles import ParticleSolver
 from .stats import CellStats
 
@@ -80,6 +83,8 @@ class Result:
     final_density: np.ndarray = field(repr=False)  # every member at the end, (ensemble, *cells)
     wall_time: float = 0.0
     regrids: list[dict] = field(default_factory=list, repr=False)  # hybrid: one record per regrid
+    timing: dict[str, float] = field(default_factory=dict)  # seconds per part of the run
+    frames: list[Path] = field(default_factory=list)  # PNG frames written
     path: Path | None = None
 
 
@@ -101,12 +106,31 @@ def make_solver(scene: Scene, ppc: np.ndarray):
     return solver
 
 
+@dataclass
+class _Progress:
+    """What a run has produced so far: enough, with the solver states, to resume it exactly."""
+
+    step: int = 0
+    rows: list = field(default_factory=list)  # statistics rows (dicts of arrays)
+    times: list = field(default_factory=list)  # their times
+    diag: dict = field(default_factory=lambda: {"time": []})  # per step: every key the solvers report
+    frames: dict = field(default_factory=lambda: {"time": [], "negative_cells": []})  # per frame
+    pooled: dict | None = None  # stationary runs: the pooled accumulator's state
+    timing: dict = field(default_factory=dict)  # seconds per part of the run
+
+
 def run(scene: Scene, out: str | Path | None = None, progress: bool | None = None,
-        arch: str = "cpu", threads: int | None = None) -> Result:
-    """Run a scene; return its statistics and, with ``out``, write ``out/<scene>_<method>.h5``.
+        arch: str = "cpu", threads: int | None = None, *, frames: bool | None = None, movie: bool = False,
+        snapshots: bool | None = None, checkpoint_every: int = 0, restart: str | Path | None = None) -> Result:
+    """Run a scene; return its statistics and, with ``out``, write its files there.
 
     Rows are taken at ``scene.output_steps`` over the ensemble; a stationary scene (``t_equil``
-    set) pools every ``sample_every``-th step after ``t_equil`` into one row.
+    set) pools every ``sample_every``-th step after ``t_equil`` into one row. With ``out``:
+    ``<scene>_<method>.h5`` (statistics, diagnostics), and for 2D/3D scenes by default PNG frames
+    at the output times (``frames``; ``movie`` adds ``scene.movie_frames`` evenly spaced frames
+    and an MP4 or GIF) and openPMD snapshots of member 0 (``snapshots``).
+    ``checkpoint_every`` K writes ``<scene>_<method>_checkpoint.h5`` every K steps (atomically);
+    ``restart`` continues from such a file, bit for bit as if never interrupted.
     """
     if not _initialized():
         init(arch, threads)
@@ -114,58 +138,119 @@ def run(scene: Scene, out: str | Path | None = None, progress: bool | None = Non
     ppc = initial.density_ppc(scene.init, scene.params, scene.cells, scene.lengths)
     try:
         solver = make_solver(scene, ppc)
+        other = make_solver(dataclasses.replace(scene, method=scene.compare), ppc) if scene.compare else None
     except OverflowError as exc:
         raise SimulationError(str(exc)) from None
+    prog = _Progress()
+    if restart is not None:
+        prog = _read_checkpoint(Path(restart), scene, solver, other)
+    picture = scene.dim >= 2 and out is not None  # frames and snapshots are for 2D and 3D scenes
+    frames = picture and (frames is not False or movie)
+    snapshots = picture and snapshots is not False
+    base = Path(out) / f"{scene.name}_{scene.method}" if out is not None else None
     hist = scene.histogram
-    path = Path(out) / f"{scene.name}_{scene.method}.h5" if out is not None else None
-    rf = RunFile(path, scene, hist[1] - hist[0] + 1 if hist else None) if path else None
-    rows: list[dict] = []
-    times: list[float] = []
-    diag: dict[str, list] = {"time": []}  # per step: every key the solver reports
-    flushed = 0
+    rf = RunFile(base.with_suffix(".h5"), scene, hist[1] - hist[0] + 1 if hist else None) if base else None
+    if rf:  # a restarted run writes what the checkpoint holds first: the file ends up the same
+        for t, row in zip(prog.times, prog.rows):
+            rf.write_row(t, row)
+        rf.write_diagnostics(prog.diag)
+    flushed = len(prog.diag["time"])
+    writer = None
+    if frames:
+        from .render import FrameWriter, Renderer
+
+        writer = FrameWriter(base.parent / f"{base.name}_frames", Renderer(scene.cells, 1 + bool(other),
+                             float(ppc.max()) or 1.0), f"{scene.name}   {'x'.join(map(str, scene.cells))} cells")
+        writer.files = [writer.dir / f"frame_{k:04d}.png" for k in range(len(prog.frames["time"]))]
     stationary = scene.t_equil is not None
     n_equil = round(scene.t_equil / scene.dt) if stationary else 0
     pooled = CellStats(scene.cells, scene.cell_volume, hist)
+    if prog.pooled:
+        pooled.load_state(prog.pooled)
     outputs = set(scene.output_steps)
+    frame_steps = set(scene.output_steps) | ({0} if frames else set())
+    if movie:
+        frame_steps |= {round(k * scene.n_steps / scene.movie_frames) for k in range(scene.movie_frames + 1)}
+    timing = prog.timing
+    timing.setdefault("statistics", 0.0)
+    timing.setdefault("render", 0.0)
+    timing.setdefault("io", 0.0)
+
+    def clock(part: str, t0: float) -> float:
+        t1 = time.perf_counter()
+        timing[part] = timing.get(part, 0.0) + t1 - t0
+        return t1
 
     def record(n: int) -> None:
         nonlocal flushed
+        t0 = time.perf_counter()
+        t = n * scene.dt
         if stationary:
             if n >= n_equil and (n - n_equil) % scene.sample_every == 0:
                 pooled.add(solver.density())
-            if n != scene.n_steps:
-                return
-            row = pooled.row()
+            row = pooled.row() if n == scene.n_steps else None
         elif n in outputs:
             cs = CellStats(scene.cells, scene.cell_volume, hist)
             cs.add(solver.density())
             row = cs.row()
         else:
-            return
-        rows.append(row)
-        times.append(n * scene.dt)
-        if rf:
-            rf.write_row(n * scene.dt, row)
-            rf.write_diagnostics({k: v[flushed:] for k, v in diag.items()})
-            flushed = len(diag["time"])
+            row = None
+        t0 = clock("statistics", t0)
+        if frames and n in frame_steps:
+            panels = _panels(scene, solver, other)
+            writer.write(t, panels)
+            prog.frames["time"].append(t)
+            prog.frames["negative_cells"].append(int((panels[0].ppc < 0).sum()))
+            if other:
+                prog.frames.setdefault("compare_negative_cells", []).append(int((panels[1].ppc < 0).sum()))
+            t0 = clock("render", t0)
+        if snapshots and n in outputs:
+            _snapshot(base, n, scene, solver)
+        if row is not None:
+            prog.rows.append(row)
+            prog.times.append(t)
+            if rf:
+                rf.write_row(t, row)
+                rf.write_diagnostics({k: v[flushed:] for k, v in prog.diag.items()})
+                flushed = len(prog.diag["time"])
+        clock("io", t0)
 
     show = sys.stderr.isatty() if progress is None else progress
+    ckpt = base.parent / f"{base.name}_checkpoint.h5" if base and checkpoint_every else None
     try:
-        record(0)
-        with tqdm(total=scene.n_steps, disable=not show, unit="step", desc=f"{scene.name}/{scene.method}",
-                  file=sys.stderr, mininterval=0.5) as bar:
-            for n in range(scene.n_steps):
+        if restart is None:
+            record(0)
+        with tqdm(total=scene.n_steps, initial=prog.step, disable=not show, unit="step",
+                  desc=f"{scene.name}/{scene.method}", file=sys.stderr, mininterval=0.5) as bar:
+            for n in range(prog.step, scene.n_steps):
+                t0 = time.perf_counter()
                 solver.step(n)
+                t0 = clock("solver", t0)
                 d = solver.diagnostics()
+                if other:
+                    other.step(n)
+                    clock("compare", t0)
+                    d |= {f"compare_{k}": v for k, v in other.diagnostics().items()
+                          if k in ("mass", "min_density", "negative_cells")}
                 if not math.isfinite(d["mass"]):
                     raise SimulationError(
                         f"the density became NaN or infinite at step {n + 1} (t = {(n + 1) * scene.dt:.4g}): "
                         f"the scheme is unstable at C = {scene.C}; lower C")
-                diag["time"].append((n + 1) * scene.dt)
+                prog.diag["time"].append((n + 1) * scene.dt)
                 for k, v in d.items():
-                    diag.setdefault(k, []).append(v)
+                    prog.diag.setdefault(k, []).append(v)
                 record(n + 1)
+                prog.step = n + 1
+                if ckpt and prog.step % checkpoint_every == 0 and prog.step < scene.n_steps:
+                    t0 = time.perf_counter()
+                    prog.pooled = pooled.state() if stationary else None
+                    _write_checkpoint(ckpt, scene, solver, other, prog)
+                    clock("io", t0)
                 bar.update()
+        if movie and writer:
+            t0 = time.perf_counter()
+            writer.movie()
+            clock("render", t0)
     except OverflowError as exc:
         if rf:
             rf.close(time.perf_counter() - wall0, error=str(exc))
@@ -175,14 +260,96 @@ def run(scene: Scene, out: str | Path | None = None, progress: bool | None = Non
             rf.close(time.perf_counter() - wall0, error=f"{type(exc).__name__}: {exc}")
         raise
     wall = time.perf_counter() - wall0
+    if hasattr(solver, "timing"):  # the hybrid splits its step into SPDE, particles and regrid
+        timing.update({k: v for k, v in solver.timing.items()})
+        timing.pop("solver", None)
+    timing["total"] = wall
     regrids = getattr(solver, "regrids", [])
     if rf:
         rf.write_table("regrid", regrids)
+        if frames:
+            rf.write_table("frames", [dict(zip(prog.frames, v)) for v in zip(*prog.frames.values())])
+        rf.h5.attrs["timing"] = json.dumps(timing)
         rf.close(wall)
-    stack = {k: np.stack([r[k] for r in rows]) for k in rows[0]}
+    stack = {k: np.stack([r[k] for r in prog.rows]) for k in prog.rows[0]}
     stats = Stats(mean=stack["mean"], variance=stack["variance"], skewness=stack["skewness"],
                   kurtosis=stack["kurtosis"], n_samples=stack["n_samples"], histogram=stack.get("histogram"),
                   hist_lo=hist[0] if hist else None)
-    return Result(scene=scene, times=np.array(times), cell_volume=scene.cell_volume, stats=stats,
-                  diagnostics={k: np.asarray(v) for k, v in diag.items()}, final_density=solver.density(),
-                  wall_time=wall, path=path, regrids=regrids)
+    return Result(scene=scene, times=np.array(prog.times), cell_volume=scene.cell_volume, stats=stats,
+                  diagnostics={k: np.asarray(v) for k, v in prog.diag.items()}, final_density=solver.density(),
+                  wall_time=wall, path=rf.path if rf else None, regrids=regrids, timing=timing,
+                  frames=list(writer.files) if writer else [])
+
+
+def _panels(scene: Scene, solver, other) -> list:
+    """Member 0 of each method as a frame panel, in particles per cell."""
+    from .render import Panel
+
+    vol = scene.cell_volume
+    panels = [Panel(scene.method, solver.density()[0] * vol, getattr(solver, "boxes", [None])[0])]
+    if other:
+        panels.append(Panel(scene.compare, other.density()[0] * vol))
+    return panels
+
+
+def _snapshot(base: Path, n: int, scene: Scene, solver) -> None:
+    """openPMD snapshot of member 0 at step ``n`` (the hybrid adds its region, particles and boxes)."""
+    region = positions = ids = boxes = None
+    if isinstance(solver, HybridSolver):
+        region = solver.region()[0]
+        st = solver.state()
+        k = int(st["n_real"][0])
+        positions = st["x"][0, :k]
+        ids = (st["pid"][0, :k, 0].astype(np.uint64) << np.uint64(32)) | st["pid"][0, :k, 1].astype(np.uint64)
+        boxes = np.array([(*lo, *hi) for lo, hi in solver.boxes[0]], dtype=np.int64).reshape(-1, 2 * scene.dim)
+    write_openpmd(base.parent / f"{base.name}_openpmd", n, n * scene.dt, scene.dt, scene.grid,
+                  solver.density()[0], region, positions, ids, boxes)
+
+
+def _write_checkpoint(path: Path, scene: Scene, solver, other, prog: _Progress) -> None:
+    """Everything needed to resume at ``prog.step``; written to a temporary name, then renamed."""
+    tmp = path.with_suffix(".h5.tmp")
+    with h5py.File(tmp, "w") as f:
+        f.attrs["scene"] = json.dumps(scene.to_dict())
+        f.attrs["step"] = prog.step
+        f.attrs["timing"] = json.dumps(prog.timing | ({"hybrid": solver.timing} if hasattr(solver, "timing") else {}))
+        for name, s in (("solver", solver), ("compare", other)):
+            if s is not None:
+                for k, v in s.state().items():
+                    f.create_dataset(f"{name}/{k}", data=v)
+        f.create_dataset("times", data=np.array(prog.times, dtype=np.float64))
+        for i, row in enumerate(prog.rows):
+            for k, v in row.items():
+                f.create_dataset(f"rows/{i}/{k}", data=v)
+        for group, table in (("diag", prog.diag), ("frames", prog.frames)):
+            for k, v in table.items():
+                f.create_dataset(f"{group}/{k}", data=np.asarray(v))
+        for k, v in (prog.pooled or {}).items():
+            f.create_dataset(f"pooled/{k}", data=v)
+    tmp.replace(path)
+
+
+def _read_checkpoint(path: Path, scene: Scene, solver, other) -> _Progress:
+    if not path.exists():
+        raise ConfigError(f"--restart {path}: no such checkpoint")
+    try:
+        f = h5py.File(path, "r")
+    except OSError as exc:
+        raise ConfigError(f"--restart {path}: not a readable checkpoint ({exc})") from None
+    with f:
+        if json.loads(f.attrs["scene"]) != json.loads(json.dumps(scene.to_dict())):
+            raise ConfigError(f"--restart {path}: the checkpoint was written for other scene settings; "
+                              "restart with the same scene, method and --set values")
+        read = lambda g: {k: g[k][()] for k in g}  # noqa: E731
+        solver.load_state(read(f["solver"]))
+        if other is not None:
+            other.load_state(read(f["compare"]))
+        timing = json.loads(f.attrs["timing"])
+        if "hybrid" in timing:
+            solver.timing = timing.pop("hybrid")
+        prog = _Progress(step=int(f.attrs["step"]), times=list(f["times"][()]), timing=timing,
+                         rows=[read(f[f"rows/{i}"]) for i in range(len(f["times"]))],
+                         diag={k: list(v) for k, v in read(f["diag"]).items()},
+                         frames={k: list(v) for k, v in read(f["frames"]).items()},
+                         pooled=read(f["pooled"]) if "pooled" in f else None)
+    return prog

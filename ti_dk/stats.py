@@ -103,6 +103,20 @@ class CellStats:
         if self.histogram is not None:
             self.histogram.add(density * self.cell_volume)
 
+    def state(self) -> dict[str, np.ndarray]:
+        """Everything needed to resume accumulating (for checkpoints)."""
+        m = self.moments
+        st = {"n": np.int64(m.n), "mean": m.mean, "m2": m.m2, "m3": m.m3, "m4": m.m4}
+        if self.histogram is not None:
+            st |= {"hist_counts": self.histogram.counts, "hist_outside": self.histogram.outside}
+        return st
+
+    def load_state(self, st: dict[str, np.ndarray]) -> None:
+        m = self.moments
+        m.n, m.mean, m.m2, m.m3, m.m4 = int(st["n"]), st["mean"], st["m2"], st["m3"], st["m4"]
+        if self.histogram is not None:
+            self.histogram.counts, self.histogram.outside = st["hist_counts"], st["hist_outside"]
+
     def row(self) -> dict[str, np.ndarray]:
         m = self.moments
         row = {"mean": m.mean, "variance": m.variance, "skewness": m.skewness, "kurtosis": m.kurtosis,
