@@ -86,7 +86,7 @@ class Terminated(Exception):
 
 
 def _terminate(signum, frame):
-    raise Terminated()
+    raise Terminated("stopped by SIGTERM")
 
 
 def _fail(message: str, status: int = 2) -> int:
