@@ -4,6 +4,7 @@ from __future__ import annotations
 import json
 import platform
 import time
+from contextlib import contextmanager
 from pathlib import Path
 
 import h5py
@@ -25,10 +26,12 @@ class RunFile:
     """One run's HDF5 file.
 
     Layout: attributes ``scene`` (JSON), ``versions`` (JSON), ``seed``, ``complete``,
-    ``wall_time``; ``/stats/time`` and ``/stats/{mean,variance,skewness,kurtosis}`` shaped
-    ``(n_rows, *cells)`` in number-density units, ``/stats/n_samples``, optional
-    ``/stats/histogram`` ``(n_rows, *cells, bins)`` with attribute ``lo``; ``/diagnostics/*`` one
-    entry per step; ``/regrid/*`` one entry per regrid of a hybrid run. Every row is flushed when written; ``complete`` turns true only at the end, so
+    ``wall_time``, ``timing``; ``/stats/time`` and ``/stats/{mean,variance,skewness,kurtosis}``
+    (only ``mean`` for a single member without time pooling) shaped ``(n_rows, *cells)`` in
+    number-density units, ``/stats/n_samples``, optional ``/stats/histogram``
+    ``(n_rows, *cells, bins)`` with attribute ``lo``; ``/diagnostics/*`` one entry per step;
+    ``/regrid/*`` one entry per regrid of a hybrid run; ``/frames/*`` one entry per frame. Every
+    row is flushed when written; ``complete`` turns true only at the end, so
     a killed run leaves a readable file that says it is unfinished.
     """
 
@@ -47,7 +50,9 @@ class RunFile:
         st.attrs["cell_volume"] = scene.cell_volume
         self._grow(st, "time", (), np.float64)
         self._grow(st, "n_samples", (), np.int64)
-        for k in STAT_KEYS:
+        # one member and no pooling: only the mean (= that member's density) means anything
+        self.keys = STAT_KEYS if scene.ensemble > 1 or scene.t_equil is not None else STAT_KEYS[:1]
+        for k in self.keys:
             self._grow(st, k, scene.cells, np.float64)
         if histogram_bins:
             self._grow(st, "histogram", (*scene.cells, histogram_bins), np.int64).attrs["lo"] = scene.histogram[0]
@@ -71,7 +76,8 @@ class RunFile:
         st = self.h5["stats"]
         self._append(st["time"], [t])
         for k, v in row.items():
-            self._append(st[k], np.asarray(v)[None])
+            if k in st:
+                self._append(st[k], np.asarray(v)[None])
         self.h5.flush()
 
     def write_diagnostics(self, diag: dict[str, list]) -> None:
@@ -98,6 +104,20 @@ class RunFile:
         self.h5.close()
 
 
+@contextmanager
+def atomic_h5(path: Path):
+    """An HDF5 file written under a temporary name and renamed once whole; removed if interrupted,
+    so whatever carries ``path`` is always complete."""
+    tmp = path.with_suffix(path.suffix + ".tmp")
+    try:
+        with h5py.File(tmp, "w") as f:
+            yield f
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    tmp.replace(path)
+
+
 def _b(text: str) -> np.bytes_:
     """openPMD string attributes as fixed-length bytes (what yt and openPMD-viewer expect)."""
     return np.bytes_(text.encode())
@@ -117,10 +137,9 @@ def write_openpmd(directory: Path, iteration: int, t: float, dt: float, grid, de
 
     directory.mkdir(parents=True, exist_ok=True)
     path = directory / f"data{iteration:06d}.h5"
-    tmp = path.with_suffix(".h5.tmp")
     d = grid.dim
     labels = [_b(a) for a in "xyz"[:d]]
-    with h5py.File(tmp, "w") as f:
+    with atomic_h5(path) as f:
         a = f.attrs
         a["openPMD"], a["openPMDextension"] = _b("1.1.0"), np.uint32(0)
         a["basePath"], a["meshesPath"], a["particlesPath"] = _b("/data/%T/"), _b("meshes/"), _b("particles/")
@@ -164,5 +183,4 @@ def write_openpmd(directory: Path, iteration: int, t: float, dt: float, grid, de
         if boxes is not None:
             f.create_dataset("ti_dk/boxes", data=boxes)
             f["ti_dk"].attrs["columns"] = _b("lo (one per axis), hi (one per axis), in cells; hi exclusive")
-    tmp.replace(path)
     return path

@@ -145,7 +145,7 @@ class Renderer:
         """A 2D density (cells ``plane[i, j]``, i right, j up) at ``s`` pixels per cell; negative
         cells as white dots; ``rect`` rows (lo_i, lo_j, hi_i, hi_j) outlined in ``edge``."""
         nx, ny = plane.shape[0], plane.shape[1]
-        r = ti.max(2.5, 0.6 * s)  # dot radius [pixels]: visible at a glance however small the cells
+        r = ti.max(1.6, 0.6 * s)  # dot radius [pixels]: visible at a glance however small the cells
         for px, py in ti.ndrange(nx * s, ny * s):
             i, j = px // s, ny - 1 - py // s
             c = self._colour(plane[i, j], vmax)
@@ -198,7 +198,8 @@ class Renderer:
 
     @ti.kernel
     def _edges(self, cuboids: ti.types.ndarray(), x0: ti.i32, y0: ti.i32, size: ti.i32):
-        """The 12 edges of each box (cells lo..hi of a cube of ``n`` cells) projected as in _march."""
+        """The 12 edges of each box (cells lo..hi of a cube of ``n`` cells) projected as in _march,
+        darkening what lies under them (a pixel under several edges once per sample)."""
         az, el = ti.static(math.radians(35.0), math.radians(25.0))
         F = ti.Vector([ti.cos(el) * ti.cos(az), ti.cos(el) * ti.sin(az), ti.sin(el)])
         R = ti.Vector([-ti.sin(az), ti.cos(az), 0.0])
@@ -218,8 +219,8 @@ class Renderer:
             d = x - ti.Vector([0.5, 0.5, 0.5])
             px = ti.cast((d.dot(R) + 0.9) / 1.8 * size, ti.i32)
             py = ti.cast((0.9 - d.dot(U)) / 1.8 * size, ti.i32)
-            if 0 <= px < size and 0 <= py < size:
-                self.img[x0 + px, y0 + py] = ti.Vector([0.0, 0.0, 0.0])
+            if 0 <= px < size and 0 <= py < size:  # half-transparent: many boxes stay readable
+                self.img[x0 + px, y0 + py] *= 0.55
 
     @ti.kernel
     def _bar_kernel(self, x0: ti.i32, y0: ti.i32, w: ti.i32, hgt: ti.i32):

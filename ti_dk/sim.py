@@ -20,7 +20,7 @@ from .config import ConfigError, Scene
 from .fv import SPDESolver
 from .grid import Grid
 from .hybrid import HybridSolver
-from .io import RunFile, write_openpmd
+from .io import RunFile, atomic_h5, write_openpmd
 from .particles import ParticleSolver
 from .stats import CellStats
 
@@ -308,8 +308,7 @@ def _snapshot(base: Path, n: int, scene: Scene, solver) -> None:
 
 def _write_checkpoint(path: Path, scene: Scene, solver, other, prog: _Progress) -> None:
     """Everything needed to resume at ``prog.step``; written to a temporary name, then renamed."""
-    tmp = path.with_suffix(".h5.tmp")
-    with h5py.File(tmp, "w") as f:
+    with atomic_h5(path) as f:  # interrupted (SIGTERM): the previous checkpoint stays the latest
         f.attrs["scene"] = json.dumps(scene.to_dict())
         f.attrs["step"] = prog.step
         f.attrs["timing"] = json.dumps(prog.timing | ({"hybrid": solver.timing} if hasattr(solver, "timing") else {}))
@@ -326,7 +325,6 @@ def _write_checkpoint(path: Path, scene: Scene, solver, other, prog: _Progress) 
                 f.create_dataset(f"{group}/{k}", data=np.asarray(v))
         for k, v in (prog.pooled or {}).items():
             f.create_dataset(f"pooled/{k}", data=v)
-    tmp.replace(path)
 
 
 def _read_checkpoint(path: Path, scene: Scene, solver, other) -> _Progress:

@@ -1,0 +1,24 @@
+#!/usr/bin/env bash
+# The README's pictures, from the documented commands; run from the repository root.
+set -euo pipefail
+py=${PYTHON:-.venv/bin/python}
+out=$(mktemp -d)
+$py -m ti_dk.scene ellipse2d --out "$out" --no-snapshots
+$py -m ti_dk.scene sphere3d --out "$out" --no-snapshots
+$py -m ti_dk.scene ellipse2d --quick --movie --set movie_frames=12 --out "$out/quick" --no-snapshots
+$py - "$out" <<'PY'
+import sys
+from pathlib import Path
+
+import imageio.v3 as iio
+import numpy as np
+from PIL import Image
+
+out, gallery = Path(sys.argv[1]), Path("renders/gallery")
+third = lambda a: np.asarray(Image.fromarray(a).resize((a.shape[1] // 3, a.shape[0] // 3), Image.LANCZOS))  # noqa: E731
+iio.imwrite(gallery / "ellipse2d_t00096.png", iio.imread(out / "ellipse2d_hybrid_frames/frame_0002.png"))
+iio.imwrite(gallery / "sphere3d_t0015.png", iio.imread(out / "sphere3d_hybrid_frames/frame_0002.png"))
+frames = [third(iio.imread(f)) for f in sorted((out / "quick/ellipse2d_hybrid_frames").glob("frame_*.png"))]
+iio.imwrite(gallery / "ellipse2d_quick.gif", np.stack(frames), duration=150, loop=0)
+PY
+rm -rf "$out"
