@@ -50,7 +50,7 @@ def fig2(ensemble: int, out: Path, plt) -> dict:
         exact = _binomial_pmf(ppc)
         data[f"ppc{ppc}/exact"] = np.stack([np.arange(exact.size), exact])
         ax.plot(np.arange(exact.size), exact, label="exact (binomial)", **STYLE["exact"])
-        ax.set(title=f"{ppc} particles per cell", xlabel="particles in a cell (bins one particle wide)",
+        ax.set(title=f"{ppc} particle{'s' * (ppc != 1)} per cell", xlabel="particles in a cell (bins one particle wide)",
                ylabel="probability", xlim=(-4, 4 * ppc + 6))
         ax.legend()
     return _save(fig, out, "fig2", data)

@@ -93,3 +93,32 @@ def linear_scheme_variance(cells: tuple[int, ...], dt_over_dx2: tuple[float, ...
         var = var * (1.0 - (1.0 - 2.0 * S) ** (2 * steps))
     var.flat[0] = 0.0
     return float(var.mean())
+
+
+def sampling_se(pmf: np.ndarray, members: int, replicas: int = 400, seed: int = 0) -> dict[str, float]:
+    """Standard errors of the sample mean, variance, skewness and kurtosis of ``members`` draws from
+    an exact PMF on 0, 1, 2, …, found by drawing ``replicas`` independent ensembles from it."""
+    rng = np.random.default_rng(seed)
+    x = rng.choice(len(pmf), size=(replicas, members), p=pmf / pmf.sum()).astype(float)
+    m = x.mean(axis=1, keepdims=True)
+    d = x - m
+    m2 = (d**2).mean(axis=1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        skew = (d**3).mean(axis=1) / m2**1.5
+        kurt = (d**4).mean(axis=1) / m2**2
+    return {"mean": x.mean(axis=1).std(), "variance": x.var(axis=1, ddof=1).std(),
+            "skewness": np.nanstd(skew), "kurtosis": np.nanstd(kurt)}
+
+
+def void_reference(ppc0: np.ndarray, length: float, t: float, members: int, cells: np.ndarray,
+                   replicas: int = 200) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
+    """The exact per-cell moments of particle counts at time ``t`` from the integer initial counts
+    ``ppc0`` (periodic 1D), and the sampling standard errors of an ensemble of ``members`` in the
+    ``cells`` asked for (NaN elsewhere)."""
+    exact = particle_counts_periodic1d(ppc0, length, t)
+    P = cell_transition(len(ppc0), length, t)
+    se = {k: np.full(len(ppc0), np.nan) for k in exact}
+    for i in np.flatnonzero(cells):
+        for k, v in sampling_se(poisson_binomial_pmf(P[:, i], ppc0), members, replicas, seed=int(i)).items():
+            se[k][i] = v
+    return exact, se
