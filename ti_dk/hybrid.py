@@ -150,18 +150,16 @@ class HybridSolver:
     def regrid(self, n: int) -> None:
         """New region from the SPDE density at step ``n`` (tag, buffer, Berger–Rigoutsos)."""
         ppc = self.spde.density() * self.grid.cell_volume
+        tags = regrid.grow(regrid.tag(ppc, self.params.threshold), self.params.buffer, (None, *self.periodic))
         masks = np.zeros(ppc.shape, dtype=bool)
-        cache: dict[bytes, tuple] = {}
-        n_boxes, tagged = 0, 0
+        cache: dict[bytes, tuple] = {}  # members with the same tags get the same boxes
         for e in range(self.ensemble):
-            tags = regrid.grow(regrid.tag(ppc[e], self.params.threshold), self.params.buffer, self.periodic)
-            k = tags.tobytes()
+            k = tags[e].tobytes()
             if k not in cache:
-                cache[k] = regrid.cluster(tags, self.params)
+                cache[k] = regrid.cluster(tags[e], self.params)
             self.boxes[e] = cache[k]
-            masks[e] = regrid.mask(self.boxes[e], tags.shape)
-            n_boxes += len(self.boxes[e])
-            tagged += int(tags.sum())
+            masks[e] = regrid.mask(self.boxes[e], self.n)
+        n_boxes, tagged = sum(len(b) for b in self.boxes), int(tags.sum())
         self.set_region(masks, n, ppc)
         covered = int(masks.sum())
         self.regrids.append({"step": n, "boxes": n_boxes, "covered_cells": covered,
@@ -243,7 +241,7 @@ class HybridSolver:
         """Slots a member can need after a regrid: its region and ghost ring full, with headroom."""
         axes = tuple(range(1, self.dim + 1))
         now = self.covered.to_numpy().astype(bool)  # particles of the old region are still in the pool
-        near = np.stack([regrid.grow(m, 1, self.periodic) for m in masks]) | now
+        near = regrid.grow(masks, 1, (None, *self.periodic)) | now
         inside = np.ceil(np.maximum(ppc, 0) * near).sum(axis=axes)
         walls = self.grid.reservoir_ppc_max * 3 ** (self.dim - 1) * masks.sum(axis=axes) if self.grid.has_dirichlet else 0
         need = float(np.max(inside + walls)) if self.ensemble else 0.0
@@ -271,6 +269,7 @@ class HybridSolver:
         old = self.pool
         if capacity <= old.capacity:
             return
+        capacity = max(capacity, 2 * old.capacity)  # geometric: every new pool recompiles the kernels
         new = ParticlePool(self.ensemble, capacity, self.dim, self.real)
         x, pid = old.x.to_numpy(), old.pid.to_numpy()
         nx = np.zeros((2, self.ensemble, capacity, self.dim), dtype=numpy_dtype(self.real))

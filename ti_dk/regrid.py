@@ -37,10 +37,13 @@ def tag(ppc: np.ndarray, threshold: float) -> np.ndarray:
     return (ppc < threshold) | (ppc < 0)
 
 
-def grow(tags: np.ndarray, width: int, periodic: tuple[bool, ...]) -> np.ndarray:
-    """Tags dilated by ``width`` cells in Chebyshev distance; periodic axes wrap, others clip."""
+def grow(tags: np.ndarray, width: int, periodic: tuple[bool | None, ...]) -> np.ndarray:
+    """Tags dilated by ``width`` cells in Chebyshev distance; periodic axes wrap, others clip,
+    axes marked None (an ensemble axis) are left alone."""
     out = tags.copy()
     for a, wrap in enumerate(periodic):
+        if wrap is None:
+            continue
         base = out.copy()
         for s in range(1, width + 1):
             for shift in (s, -s):

@@ -1,0 +1,178 @@
+"""``python -m ti_dk.tradeoff``: what accuracy each setting buys, and at what cost.
+
+Sweeps method, hybrid threshold, buffer width, C (Δt) and precision on ``void1d`` (an ensemble,
+against the exact Poisson-binomial particle answer) and on a reduced ``ellipse2d`` (one member,
+against the exact particle mean and variance of every cell). For each setting it records the
+wall time, the error, the negative cells, and marks the Pareto front (no other setting is both
+faster and more accurate). Writes ``OUT/tradeoff.png``, ``OUT/tradeoff.h5`` and a Markdown table.
+
+Error on ``void1d``, for each statistic k of the per-cell counts (mean, variance, skewness,
+kurtosis) over the low-density cells L (exact mean between 0.5 and 10 particles):
+
+    e_k = sqrt( mean_{i∈L} z_{k,i}² ),   z_{k,i} = (estimate − exact) / sampling SE,
+
+so e_k ≈ 1 is "exact within sampling error"; the headline error is max_k e_k. Error on
+``ellipse2d``: χ² per cell of the single realisation against the exact particle mean and variance,
+mean_i (q_i − m_i)² / v_i, which is 1 for a correct realisation, and the negative-cell count.
+"""
+import argparse
+import json
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import h5py
+import numpy as np
+
+from . import config, initial, sim, theory
+
+KEYS = ("mean", "variance", "skewness", "kurtosis")
+
+
+@dataclass
+class Setting:
+    label: str
+    overrides: dict = field(default_factory=dict)
+
+
+def void_settings() -> list[Setting]:
+    s = [Setting("particle", {"method": "particle"}), Setting("fv", {"method": "fv"}),
+         Setting("gaussian", {"method": "gaussian"}),
+         Setting("hybrid fixed region (paper)", {"method": "hybrid", "regrid_interval": 0})]
+    s += [Setting(f"hybrid threshold {t:g}", {"method": "hybrid", "threshold": t, "regrid_interval": 10})
+          for t in (1, 2, 5, 10, 20)]
+    s += [Setting(f"hybrid buffer {b}", {"method": "hybrid", "threshold": 5.0, "buffer": b, "regrid_interval": 10})
+          for b in (0, 2, 4)]
+    s += [Setting(f"{m} C={c:g}", {"method": m, "C": c, **({"regrid_interval": 0} if m == "hybrid" else {})})
+          for m in ("fv", "hybrid") for c in (0.02, 0.125, 0.2)]
+    s += [Setting(f"{m} f32", {"method": m, "precision": "f32", **({"regrid_interval": 0} if m == "hybrid" else {})})
+          for m in ("fv", "hybrid")]
+    s += [Setting("hybrid uniform ghosts (paper)", {"method": "hybrid", "regrid_interval": 0,
+                                                     "ghost_profile": "uniform"})]
+    return s
+
+
+def void_error(res: sim.Result, members: int, t: float) -> dict[str, float]:
+    ppc0 = initial.density_ppc(res.scene.init, res.scene.params, res.scene.cells, res.scene.lengths).round()
+    mean = theory.particle_counts_periodic1d(ppc0, 1.0, t)["mean"]
+    cells = (mean > 0.5) & (mean < 10)
+    exact, se = theory.void_reference(ppc0, 1.0, t, members, cells, replicas=100)
+    vol = res.cell_volume
+    est = {"mean": res.stats.mean[-1] * vol, "variance": res.stats.variance[-1] * vol**2,
+           "skewness": res.stats.skewness[-1], "kurtosis": res.stats.kurtosis[-1]}
+    err = {k: float(np.sqrt(np.nanmean(((est[k] - exact[k]) / se[k])[cells] ** 2))) for k in KEYS}
+    err["error"] = max(err.values())
+    return err
+
+
+def ellipse_error(res: sim.Result, t: float) -> dict[str, float]:
+    sc = res.scene
+    ppc0 = initial.density_ppc(sc.init, sc.params, sc.cells, sc.lengths).round()
+    Px, Py = (theory.cell_transition(n, L, t) for n, L in zip(sc.cells, sc.lengths))
+    # exact per cell: a particle from cell (a, b) lands in (i, j) with probability Px[a, i] Py[b, j]
+    m = Px.T @ ppc0 @ Py
+    v = m - (Px.T**2) @ ppc0 @ (Py**2)  # Σ n_ab p(1 − p): Poisson-binomial variance
+    q = res.final_density[0] * sc.cell_volume
+    return {"error": float(np.mean((q - m) ** 2 / v))}
+
+
+def pareto(cost: np.ndarray, err: np.ndarray) -> np.ndarray:
+    """True for settings no other setting beats in both cost and error."""
+    return np.array([not np.any((cost <= c) & (err <= e) & ((cost < c) | (err < e))) for c, e in zip(cost, err)])
+
+
+def sweep(scene_name: str, settings: list[Setting], base: dict, error, progress=True) -> list[dict]:
+    rows = []
+    for s in settings:
+        scene = config.load_scene(scene_name, **base | s.overrides)
+        t0 = time.perf_counter()
+        res = sim.run(scene, progress=False)
+        wall = time.perf_counter() - t0
+        row = {"setting": s.label, "wall_time": wall, "negative_cells": int(res.diagnostics["negative_cells"].max()),
+               **error(res)}
+        rows.append(row)
+        if progress:
+            print(f"  {scene_name}: {s.label:32s} {wall:7.2f} s  error {row['error']:8.2f}", file=sys.stderr)
+    cost = np.array([r["wall_time"] for r in rows])
+    err = np.array([r["error"] for r in rows])
+    for r, p in zip(rows, pareto(cost, err)):
+        r["pareto"] = bool(p)
+    return rows
+
+
+def criterion(rows: list[dict], tolerance: float = 2.0) -> float | None:
+    """The smallest hybrid threshold whose error is within ``tolerance`` sampling errors."""
+    ok = [float(r["setting"].split()[-1]) for r in rows
+          if r["setting"].startswith("hybrid threshold") and r["error"] <= tolerance]
+    return min(ok) if ok else None
+
+
+def table(rows: list[dict], keys: tuple[str, ...]) -> str:
+    head = "| setting | wall s | " + " | ".join(keys) + " | negative cells | Pareto |\n"
+    head += "|---" * (len(keys) + 4) + "|\n"
+    return head + "".join(
+        f"| {r['setting']} | {r['wall_time']:.2f} | " + " | ".join(f"{r[k]:.2f}" for k in keys)
+        + f" | {r['negative_cells']} | {'★' if r['pareto'] else ''} |\n" for r in rows)
+
+
+def plot(results: dict[str, list[dict]], out: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, len(results), figsize=(7 * len(results), 5.5))
+    for ax, (name, rows) in zip(np.atleast_1d(axes), results.items()):
+        cost = np.array([r["wall_time"] for r in rows])
+        err = np.array([r["error"] for r in rows])
+        front = np.array([r["pareto"] for r in rows])
+        ax.scatter(cost[~front], err[~front], c="0.5", s=25)
+        order = np.argsort(cost[front])
+        ax.plot(cost[front][order], err[front][order], "o-", c="C3", label="Pareto front")
+        for r, c, e in zip(rows, cost, err):
+            ax.annotate(r["setting"], (c, e), fontsize=7, xytext=(3, 3), textcoords="offset points")
+        ax.set(xscale="log", yscale="log", xlabel="wall time [s]", title=name,
+               ylabel="error (RMS z over low-density cells, worst moment)" if "void" in name
+               else "χ² per cell against the exact particle answer (1 = exact)")
+        ax.axhline(1.0, color="k", lw=0.8, ls=":")
+        ax.legend()
+    fig.tight_layout()
+    fig.savefig(out / "tradeoff.png", dpi=110)
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="python -m ti_dk.tradeoff", description=__doc__.splitlines()[0],
+                                formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    p.add_argument("--ensemble", type=int, default=2000, help="void1d members")
+    p.add_argument("--t-end", type=float, default=0.0025, help="void1d end time")
+    p.add_argument("--cells", type=int, default=64, help="ellipse2d cells per axis")
+    p.add_argument("--out", default="renders/tradeoff")
+    args = p.parse_args(argv)
+    sim.init("cpu")
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    base = {"ensemble": args.ensemble, "t_end": args.t_end, "output_times": [args.t_end]}
+    void = sweep("void1d", void_settings(), base, lambda r: void_error(r, args.ensemble, r.times[-1]))
+    ell_settings = [Setting("fv", {"method": "fv"}), Setting("gaussian", {"method": "gaussian"}),
+                    Setting("particle", {"method": "particle"})]
+    ell_settings += [Setting(f"hybrid threshold {t:g}", {"method": "hybrid", "threshold": t}) for t in (1, 2, 5, 10, 20)]
+    ell_base = {"cells": [args.cells, args.cells], "compare": "none", "t_end": 0.00096, "output_times": [0.00096]}
+    ell = sweep("ellipse2d", ell_settings, ell_base, lambda r: ellipse_error(r, r.times[-1]))
+    results = {f"void1d, {args.ensemble} members, t = {args.t_end:g}": void,
+               f"ellipse2d {args.cells}², one member, t = 0.00096": ell}
+    plot(results, out)
+    with h5py.File(out / "tradeoff.h5", "w") as f:
+        for name, rows in (("void1d", void), ("ellipse2d", ell)):
+            f.attrs[name] = json.dumps(rows)
+    crit = criterion(void)
+    text = (f"## void1d ({args.ensemble} members, t = {args.t_end:g})\n\n" + table(void, (*KEYS, "error"))
+            + f"\nSmallest hybrid threshold within 2 sampling errors: {crit}\n\n"
+            + f"## ellipse2d ({args.cells}², t = 0.00096)\n\n" + table(ell, ("error",)))
+    (out / "tradeoff.md").write_text(text)
+    print(text)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
