@@ -77,3 +77,103 @@ def test_restart_refuses_other_settings(tmp_path):
     run(scene, out=tmp_path, checkpoint_every=10)
     with pytest.raises(ti_dk.ConfigError, match="other scene settings"):
         run(load_scene("void1d", ensemble=5, t_end=0.0005), restart=tmp_path / "void1d_fv_checkpoint.h5")
+
+
+# -- the extremes: each runs correctly or is refused with a message, never a silent NaN ------
+def _steps(scene, steps, check=None):
+    from ti_dk import initial
+    from ti_dk.sim import make_solver
+
+    s = make_solver(scene, initial.density_ppc(scene.init, scene.params, scene.cells, scene.lengths))
+    mass = [s.diagnostics()["mass"] if hasattr(s, "regrids") or scene.method != "particle" else None]
+    for n in range(steps):
+        s.step(n)
+        d = s.diagnostics()
+        assert np.isfinite(d["mass"]) and np.all(np.isfinite(s.density()))
+        mass.append(d["mass"])
+        if check:
+            check(s)
+    return s, np.array(mass[1:])
+
+
+def test_time_step_at_below_and_above_the_limit():
+    with pytest.raises(ti_dk.ConfigError, match="stability limit"):
+        load_scene("equilibrium1d", C=1.0)
+    s, mass = _steps(load_scene("equilibrium1d", C=0.95, ppc=20, ensemble=4, t_equil=None, histogram=None), 3000)
+    assert np.allclose(mass, mass[0], rtol=1e-12)
+    with pytest.raises(SimulationError, match="unstable at C = 1.05; lower C"):
+        run(load_scene("equilibrium1d", C=1.05, allow_unstable=True, ppc=20, ensemble=4, t_equil=None,
+                       histogram=None, t_end=1.0))
+
+
+@pytest.mark.parametrize("method", ["fv", "gaussian", "particle", "hybrid"])
+def test_no_particles_at_all(method):
+    s, mass = _steps(load_scene("void1d", method=method, ppc=0, ensemble=3), 50)
+    assert np.all(s.density() == 0)
+    if method == "hybrid":
+        assert s.region().all()  # everything is below the threshold: one domain-wide region
+
+
+def test_a_single_particle():
+    res = run(load_scene("equilibrium1d", method="particle", particle_init="exact_uniform", ppc=0.01,
+                         ensemble=50, t_equil=None, histogram=None, t_end=0.002))
+    assert np.all(res.diagnostics["mass"] == 50)
+    counts = res.final_density * res.cell_volume
+    assert np.all(counts.sum(axis=1) == 1) and set(np.unique(counts)) == {0.0, 1.0}
+    s, mass = _steps(load_scene("equilibrium1d", method="hybrid", ppc=0.01, ensemble=20, t_equil=None,
+                                histogram=None), 100)
+    assert s.region().all() and np.allclose(mass, mass[0]) and (s.density() >= 0).all()
+
+
+def test_a_million_particles_per_cell():
+    for method in ("fv", "gaussian", "hybrid"):
+        s, mass = _steps(load_scene("equilibrium1d", method=method, ppc=1e6, ensemble=2, t_equil=None,
+                                    histogram=None), 200)
+        rel = s.density() * s.grid.cell_volume / 1e6 - 1
+        assert 1e-5 < np.abs(rel).max() < 1e-2 and np.allclose(mass, mass[0], rtol=1e-12)
+    with pytest.raises(SimulationError, match="GiB"):
+        run(load_scene("equilibrium1d", method="particle", ppc=1e6, ensemble=100))
+
+
+@pytest.mark.parametrize("region", ["one cell", "whole domain", "on the periodic seam", "on a Neumann wall"])
+def test_extreme_particle_regions_conserve(region):
+    boundary = [["neumann", "neumann"], "periodic"] if region == "on a Neumann wall" else "periodic"
+    scene = load_scene("equilibrium1d", method="hybrid", cells=[10, 8], lengths=[1.0, 2.0], ppc=4,
+                       regrid_interval=0, threshold=1, boundary=boundary, ensemble=2, t_equil=None, histogram=None)
+    from ti_dk import initial
+    from ti_dk.sim import make_solver
+
+    s = make_solver(scene, initial.density_ppc(scene.init, scene.params, scene.cells, scene.lengths))
+    m = np.zeros((10, 8), dtype=bool)
+    if region == "one cell":
+        m[4, 3] = True
+    elif region == "whole domain":
+        m[:] = True
+    elif region == "on the periodic seam":
+        m[[0, -1], :] = True
+        m[:, [0, -1]] = True
+    else:
+        m[0, 2:6] = True
+    s.set_region(m[None], 0)
+    mass = [s.diagnostics()["mass"]]
+    for n in range(100):
+        s.step(n)
+        mass.append(s.diagnostics()["mass"])
+        assert (s.density()[s.region()] >= 0).all()
+    assert np.allclose(mass, mass[0], rtol=1e-12)
+
+
+@pytest.mark.parametrize("method", ["fv", "gaussian", "particle", "hybrid"])
+def test_two_cells_per_axis(method):
+    res = run(load_scene("ellipse2d", method=method, cells=[2, 2], compare="none", t_end=0.01))
+    assert np.all(np.isfinite(res.final_density))
+    if method != "particle":
+        assert np.allclose(res.diagnostics["mass"], res.diagnostics["mass"][0], rtol=1e-12)
+
+
+@pytest.mark.slow  # ~15 s; in CI, which has the time
+def test_a_hundred_thousand_steps():
+    scene = load_scene("equilibrium1d", ppc=50, cells=[20], C=0.25, ensemble=2, t_equil=None, histogram=None)
+    s, mass = _steps(scene, 100_000)
+    drift = np.abs(mass / mass[0] - 1).max()
+    assert drift < 1e-11, drift

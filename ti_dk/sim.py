@@ -5,6 +5,7 @@ import ctypes
 import dataclasses
 import json
 import math
+import os
 import sys
 import time
 from dataclasses import dataclass, field
@@ -94,7 +95,14 @@ def make_solver(scene: Scene, ppc: np.ndarray):
     real = ti.f32 if scene.precision == "f32" else ti.f64
     common = dict(grid=grid, dt=scene.dt, ensemble=scene.ensemble, seed=scene.seed, real=real)
     if scene.method == "particle":
-        solver = ParticleSolver(capacity=ParticleSolver.capacity_for(grid, ppc), **common)
+        capacity = ParticleSolver.capacity_for(grid, ppc)
+        need = capacity * scene.ensemble * (scene.dim + 1) * (4 if scene.precision == "f32" else 8)
+        have = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+        if need > 0.5 * have:
+            raise SimulationError(
+                f"the particle method needs {need / 2**30:.3g} GiB for {capacity:,} particles x {scene.ensemble} "
+                f"members ({have / 2**30:.3g} GiB here): lower ppc or the ensemble, or use fv or hybrid")
+        solver = ParticleSolver(capacity=capacity, **common)
         solver.initialize(ppc, exact_uniform=scene.particle_init == "exact_uniform")
         return solver
     gaussian = "gaussian" in (scene.method, scene.spde if scene.method == "hybrid" else None)
