@@ -59,13 +59,13 @@ def fig2(ensemble: int, out: Path, plt) -> dict:
 PPCS = (1, 2, 5, 10, 20, 50, 100)
 
 
-def fig3(ensemble: int, out: Path, plt) -> dict:
+def fig3(ensemble: int, out: Path, plt, ppcs: tuple[float, ...] = PPCS) -> dict:
     """Skewness and kurtosis against particles per cell; error bars: spread over the 100 cells."""
     data = {}
     fig, axes = plt.subplots(1, 2, figsize=(10, 4))
     for m in METHODS:
         rows = []
-        for ppc in PPCS:
+        for ppc in ppcs:
             res = equilibrium(m, ppc, ensemble, histogram=None)
             s, k = res.stats.skewness[-1], res.stats.kurtosis[-1]
             n = s.size
