@@ -28,8 +28,10 @@ class SPDESolver:
     cell at the reservoir density (for q and for q̄).
     """
 
-    def __init__(self, grid: Grid, dt: float, ensemble: int, seed: int, real=ti.f64, gaussian: bool = False):
+    def __init__(self, grid: Grid, dt: float, ensemble: int, seed: int, real=ti.f64, gaussian: bool = False,
+                 member0: int = 0):
         self.grid, self.dt, self.ensemble, self.real, self.gaussian = grid, dt, ensemble, real, gaussian
+        self.member0 = member0  # global index of member 0: a member's noise depends on it, not on the chunking
         self.dim = grid.dim
         self.n = grid.cells
         self.key = rng.seed_key(seed)
@@ -130,7 +132,7 @@ class SPDESolver:
         lin = ti.u32(0)
         for a in ti.static(range(self.dim)):
             lin = lin * ti.u32(self.n[a] + 1) + ti.u32(J[a + 1])
-        return rng.philox4x32(ti.math.uvec4(lin, step, ti.u32(J[0]), ti.u32(rng.FACE_NOISE)),
+        return rng.philox4x32(ti.math.uvec4(lin, step, ti.u32(J[0] + self.member0), ti.u32(rng.FACE_NOISE)),
                               ti.math.uvec2(self.key[0], self.key[1]))
 
     @ti.func

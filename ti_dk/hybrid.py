@@ -81,7 +81,7 @@ class HybridSolver:
         self.grid, self.dt, self.ensemble, self.real = grid, spde.dt, spde.ensemble, spde.real
         self.dim, self.n = grid.dim, grid.cells
         self.key = rng.seed_key(seed)
-        self.walker = Walker(grid, spde.dt, spde.real, seed)
+        self.walker = Walker(grid, spde.dt, spde.real, seed, spde.member0)
         self.offsets = list(itertools.product((-1, 0, 1), repeat=self.dim))  # the 3^d Chebyshev neighbours
         self.padded = tuple(m + 2 for m in self.n)  # the grid plus one layer of ghost cells per side
         self.id_bits = 32 - math.ceil(math.log2(math.prod(self.padded)))
@@ -358,7 +358,7 @@ class HybridSolver:
         for a in ti.static(range(self.dim)):
             lin = lin * ti.u32(self.padded[a]) + ti.u32(C[a] + 1)
         key = ti.math.uvec2(self.key[0], self.key[1])
-        bits = rng.philox4x32(ti.math.uvec4(lin, ti.u32(step), ti.u32(e), ti.u32(rng.SAMPLE_COUNT)), key)
+        bits = rng.philox4x32(ti.math.uvec4(lin, ti.u32(step), self.walker.member(e), ti.u32(rng.SAMPLE_COUNT)), key)
         m = self.walker.how_many(ti.max(lam, 0.0), bits[0])
         if m >= (1 << self.id_bits):
             ti.atomic_max(self.need[None], TOO_MANY)
@@ -371,7 +371,7 @@ class HybridSolver:
         for k in range(m):
             if base + k < pool.capacity:
                 id0 = (lin << ti.u32(self.id_bits)) | ti.u32(k)
-                r = rng.philox4x32(ti.math.uvec4(id0, ti.u32(step), ti.u32(e), ti.u32(rng.SAMPLE_POSITION)), key)
+                r = rng.philox4x32(ti.math.uvec4(id0, ti.u32(step), self.walker.member(e), ti.u32(rng.SAMPLE_POSITION)), key)
                 pool.x[buf, e, base + k] = self.walker.in_cell(C, r, tilt)
                 pool.pid[buf, e, base + k] = ti.math.uvec2(id0, ti.u32(birth))
         return m

@@ -21,8 +21,9 @@ class Walker:
     with ``Z`` keyed on (seed, member, step, id0, birth): the same whichever thread or slot holds it.
     """
 
-    def __init__(self, grid: Grid, dt: float, real, seed: int):
+    def __init__(self, grid: Grid, dt: float, real, seed: int, member0: int = 0):
         self.grid, self.dt, self.real = grid, dt, real
+        self.member0 = member0  # global index of member 0 (random numbers are keyed on the global index)
         self.dim = grid.dim
         self.key = rng.seed_key(seed)
 
@@ -32,7 +33,7 @@ class Walker:
 
         Returns the new position, whether it is still in the domain, and the number of clamped axes.
         """
-        bits = rng.philox4x32(ti.math.uvec4(id0, step, ti.u32(e), ti.u32(rng.WALK) | (birth << rng.PURPOSE_BITS)),
+        bits = rng.philox4x32(ti.math.uvec4(id0, step, self.member(e), ti.u32(rng.WALK) | (birth << rng.PURPOSE_BITS)),
                               ti.math.uvec2(self.key[0], self.key[1]))
         y = x
         alive = True
@@ -64,6 +65,11 @@ class Walker:
                         alive = False
             y[a] = ya
         return y, alive, clamped
+
+    @ti.func
+    def member(self, e):
+        """The counter word of local member ``e``: its global index."""
+        return ti.u32(e + self.member0)
 
     @ti.func
     def in_cell(self, C, bits, tilt):
@@ -107,12 +113,12 @@ class ParticleSolver:
     carries an id (slot at birth, birth step + 1) because absorption compacts the slots.
     """
 
-    def __init__(self, grid: Grid, dt: float, ensemble: int, seed: int, real, capacity: int):
+    def __init__(self, grid: Grid, dt: float, ensemble: int, seed: int, real, capacity: int, member0: int = 0):
         self.grid, self.dt, self.ensemble, self.real, self.capacity = grid, dt, ensemble, real, capacity
         self.dim = grid.dim
         self.n = grid.cells
         self.key = rng.seed_key(seed)
-        self.walker = Walker(grid, dt, real, seed)
+        self.walker = Walker(grid, dt, real, seed, member0)
         self.x = ti.Vector.field(self.dim, real, shape=(ensemble, capacity))  # particle positions [length]
         self.n_alive = ti.field(ti.i32, shape=ensemble)  # live particles of each member
         self.count = ti.field(ti.i32, shape=(ensemble, *self.n))  # particles per cell (after bin())
@@ -199,11 +205,11 @@ class ParticleSolver:
                 lin = ti.u32(0)
                 for a in ti.static(range(self.dim)):
                     lin = lin * ti.u32(self.n[a]) + ti.u32(C[a])
-                bits = rng.philox4x32(ti.math.uvec4(lin, 0, ti.u32(e), ti.u32(rng.SAMPLE_COUNT)), key)
+                bits = rng.philox4x32(ti.math.uvec4(lin, 0, self.walker.member(e), ti.u32(rng.SAMPLE_COUNT)), key)
                 m = self.walker.how_many(ppc[C], bits[0])
                 for _ in range(m):
                     if k < self.capacity:
-                        r = rng.philox4x32(ti.math.uvec4(ti.u32(k), 0, ti.u32(e), ti.u32(rng.SAMPLE_POSITION)), key)
+                        r = rng.philox4x32(ti.math.uvec4(ti.u32(k), 0, self.walker.member(e), ti.u32(rng.SAMPLE_POSITION)), key)
                         self.x[e, k] = self.walker.in_cell(C, r, ti.Vector.zero(self.real, self.dim))
                     k += 1
             if k > self.capacity:
@@ -218,7 +224,7 @@ class ParticleSolver:
             self.overflow[None] = 1
         for e, k in ti.ndrange(self.ensemble, self.capacity):
             if k < total:
-                r = rng.philox4x32(ti.math.uvec4(ti.u32(k), 0, ti.u32(e), ti.u32(rng.SAMPLE_POSITION)), key)
+                r = rng.philox4x32(ti.math.uvec4(ti.u32(k), 0, self.walker.member(e), ti.u32(rng.SAMPLE_POSITION)), key)
                 y = ti.Vector.zero(self.real, self.dim)
                 for a in ti.static(range(self.dim)):
                     y[a] = rng.uniform(r[a], self.real) * self.real(self.grid.lengths[a])
@@ -273,12 +279,12 @@ class ParticleSolver:
                             for b in ti.static(range(self.dim)):
                                 lin = lin * ti.u32(layer[b]) + ti.u32(G[b])
                             lin += ti.u32(tag)
-                            bits = rng.philox4x32(ti.math.uvec4(lin, step, ti.u32(e), ti.u32(rng.SAMPLE_COUNT)), key)
+                            bits = rng.philox4x32(ti.math.uvec4(lin, step, self.walker.member(e), ti.u32(rng.SAMPLE_COUNT)), key)
                             m = self.walker.how_many(lam, bits[0])
                             for k in range(m):
                                 id0 = lin * ti.u32(K) + ti.u32(k)
                                 r = rng.philox4x32(
-                                    ti.math.uvec4(id0, step, ti.u32(e), ti.u32(rng.SAMPLE_POSITION)), key)
+                                    ti.math.uvec4(id0, step, self.walker.member(e), ti.u32(rng.SAMPLE_POSITION)), key)
                                 y, alive, clamped = self.walker.move(self.walker.in_cell(C, r, ti.Vector.zero(self.real, self.dim)), e, id0, step + 1, step)
                                 self.clamped[None] += clamped
                                 if alive:

@@ -9,7 +9,7 @@ import signal
 import sys
 import warnings
 
-from . import config, sim
+from . import config, ensemble, sim
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
@@ -34,6 +34,11 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--checkpoint-every", type=int, default=0, metavar="K",
                    help="write <scene>_<method>_checkpoint.h5 every K steps (0: never)")
     p.add_argument("--restart", metavar="FILE", help="continue from a checkpoint written by --checkpoint-every")
+    p.add_argument("--executor", choices=ensemble.EXECUTORS, default="local",
+                   help="local: the batched ensemble in this process; dask: chunks of members on Dask workers")
+    p.add_argument("--workers", type=int, default=2, help="dask: worker processes of the local cluster")
+    p.add_argument("--chunk", type=int, help="dask: members per chunk (default: ensemble / (4 workers))")
+    p.add_argument("--scheduler", help="dask: address of an existing cluster instead of a local one")
     return p.parse_args(argv)
 
 
@@ -60,9 +65,13 @@ def main(argv: list[str] | None = None) -> int:
         for w in caught:
             print(f"ti_dk: warning: {w.message}", file=sys.stderr)
         sim.init(args.arch, args.threads)
-        result = sim.run(scene, out=args.out, progress=not args.no_progress, frames=not args.no_frames,
-                         movie=args.movie, snapshots=not args.no_snapshots, checkpoint_every=args.checkpoint_every,
-                         restart=args.restart)
+        if args.executor == "dask":
+            result = ensemble.run(scene, "dask", out=args.out, progress=not args.no_progress, chunk=args.chunk,
+                                  workers=args.workers, threads=args.threads or 1, scheduler=args.scheduler)
+        else:
+            result = sim.run(scene, out=args.out, progress=not args.no_progress, frames=not args.no_frames,
+                             movie=args.movie, snapshots=not args.no_snapshots,
+                             checkpoint_every=args.checkpoint_every, restart=args.restart)
     except (config.ConfigError, sim.SimulationError) as exc:
         return _fail(str(exc))
     except Terminated:

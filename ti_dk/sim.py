@@ -86,14 +86,17 @@ class Result:
     regrids: list[dict] = field(default_factory=list, repr=False)  # hybrid: one record per regrid
     timing: dict[str, float] = field(default_factory=dict)  # seconds per part of the run
     frames: list[Path] = field(default_factory=list)  # PNG frames written
+    rows: list[dict] = field(default_factory=list, repr=False)  # statistics rows with their accumulators
+    chunks: dict = field(default_factory=dict)  # distributed runs: chunk count and the retried chunks
     path: Path | None = None
 
 
-def make_solver(scene: Scene, ppc: np.ndarray):
-    """The solver object for ``scene.method``, initialised from ``ppc`` particles per cell."""
+def make_solver(scene: Scene, ppc: np.ndarray, member0: int = 0):
+    """The solver object for ``scene.method``, initialised from ``ppc`` particles per cell; its
+    members are members ``member0 …`` of the whole ensemble (chunks of a distributed run)."""
     grid = Grid.from_scene(scene)
     real = ti.f32 if scene.precision == "f32" else ti.f64
-    common = dict(grid=grid, dt=scene.dt, ensemble=scene.ensemble, seed=scene.seed, real=real)
+    common = dict(grid=grid, dt=scene.dt, ensemble=scene.ensemble, seed=scene.seed, real=real, member0=member0)
     if scene.method == "particle":
         capacity = ParticleSolver.capacity_for(grid, ppc)
         need = capacity * scene.ensemble * (scene.dim + 1) * (4 if scene.precision == "f32" else 8)
@@ -129,7 +132,8 @@ class _Progress:
 
 def run(scene: Scene, out: str | Path | None = None, progress: bool | None = None,
         arch: str = "cpu", threads: int | None = None, *, frames: bool | None = None, movie: bool = False,
-        snapshots: bool | None = None, checkpoint_every: int = 0, restart: str | Path | None = None) -> Result:
+        snapshots: bool | None = None, checkpoint_every: int = 0, restart: str | Path | None = None,
+        member0: int = 0) -> Result:
     """Run a scene; return its statistics and, with ``out``, write its files there.
 
     Rows are taken at ``scene.output_steps`` over the ensemble; a stationary scene (``t_equil``
@@ -138,15 +142,16 @@ def run(scene: Scene, out: str | Path | None = None, progress: bool | None = Non
     at the output times (``frames``; ``movie`` adds ``scene.movie_frames`` evenly spaced frames
     and an MP4 or GIF) and openPMD snapshots of member 0 (``snapshots``).
     ``checkpoint_every`` K writes ``<scene>_<method>_checkpoint.h5`` every K steps (atomically);
-    ``restart`` continues from such a file, bit for bit as if never interrupted.
+    ``restart`` continues from such a file, bit for bit as if never interrupted. ``member0``: the
+    global index of the first member (a chunk of a larger ensemble, see :mod:`ti_dk.ensemble`).
     """
     if not _initialized():
         init(arch, threads)
     wall0 = time.perf_counter()
     ppc = initial.density_ppc(scene.init, scene.params, scene.cells, scene.lengths)
     try:
-        solver = make_solver(scene, ppc)
-        other = make_solver(dataclasses.replace(scene, method=scene.compare), ppc) if scene.compare else None
+        solver = make_solver(scene, ppc, member0)
+        other = make_solver(dataclasses.replace(scene, method=scene.compare), ppc, member0) if scene.compare else None
     except OverflowError as exc:
         raise SimulationError(str(exc)) from None
     prog = _Progress()
@@ -279,14 +284,19 @@ def run(scene: Scene, out: str | Path | None = None, progress: bool | None = Non
             rf.write_table("frames", [dict(zip(prog.frames, v)) for v in zip(*prog.frames.values())])
         rf.h5.attrs["timing"] = json.dumps(timing)
         rf.close(wall)
-    stack = {k: np.stack([r[k] for r in prog.rows]) for k in prog.rows[0]}
-    stats = Stats(mean=stack["mean"], variance=stack["variance"], skewness=stack["skewness"],
-                  kurtosis=stack["kurtosis"], n_samples=stack["n_samples"], histogram=stack.get("histogram"),
-                  hist_lo=hist[0] if hist else None)
+    stats = stats_of(prog.rows, hist)
     return Result(scene=scene, times=np.array(prog.times), cell_volume=scene.cell_volume, stats=stats,
                   diagnostics={k: np.asarray(v) for k, v in prog.diag.items()}, final_density=solver.density(),
                   wall_time=wall, path=rf.path if rf else None, regrids=regrids, timing=timing,
-                  frames=list(writer.files) if writer else [])
+                  frames=list(writer.files) if writer else [], rows=prog.rows)
+
+
+def stats_of(rows: list[dict], hist: tuple[int, int] | None) -> Stats:
+    """The rows stacked along time."""
+    stack = {k: np.stack([r[k] for r in rows]) for k in rows[0] if not k.startswith("acc_")}
+    return Stats(mean=stack["mean"], variance=stack["variance"], skewness=stack["skewness"],
+                 kurtosis=stack["kurtosis"], n_samples=stack["n_samples"], histogram=stack.get("histogram"),
+                 hist_lo=hist[0] if hist else None)
 
 
 def _panels(scene: Scene, solver, other) -> list:

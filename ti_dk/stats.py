@@ -124,4 +124,14 @@ class CellStats:
         if self.histogram is not None:
             row["histogram"] = self.histogram.counts
             row["histogram_outside"] = self.histogram.outside
-        return row
+        return row | {f"acc_{k}": v for k, v in self.state().items()}  # to merge rows of member chunks
+
+    def merge_row(self, row: dict[str, np.ndarray]) -> None:
+        """Add the accumulators carried by another row (Pébay merge; histograms add)."""
+        other = CellStats(self.moments.mean.shape, self.cell_volume,
+                          (self.histogram.lo, self.histogram.hi) if self.histogram else None)
+        other.load_state({k[4:]: v for k, v in row.items() if k.startswith("acc_")})
+        self.moments.merge(other.moments)
+        if self.histogram is not None:
+            self.histogram.counts = self.histogram.counts + other.histogram.counts
+            self.histogram.outside = self.histogram.outside + other.histogram.outside

@@ -1,0 +1,162 @@
+"""Ensembles split into chunks of members, run on Dask workers and merged exactly.
+
+Every random number is keyed on a member's *global* index, so a member's realisation does not
+depend on which chunk or worker ran it; the driver merges the chunks' moment accumulators
+(Pébay) in member order, so any chunking gives the single-process statistics to round-off.
+Finished chunks are kept in ``<out>/<scene>_<method>_chunks/`` (written atomically), so a run
+stopped after k of n chunks resumes with the rest; a chunk whose worker died is retried by Dask
+and counted once.
+"""
+import dataclasses
+import json
+import math
+import os
+import sys
+import threading
+import time
+from pathlib import Path
+
+import h5py
+import numpy as np
+from tqdm import tqdm
+
+from . import sim
+from .config import ConfigError, Scene
+from .io import RunFile, atomic_h5
+from .stats import CellStats
+
+EXECUTORS = ("local", "dask")
+_INIT_THREAD = None  # the worker thread that started Taichi in this process
+
+
+def chunks(ensemble: int, size: int) -> list[tuple[int, int]]:
+    """``(member0, count)`` of consecutive chunks of at most ``size`` members."""
+    return [(m, min(size, ensemble - m)) for m in range(0, ensemble, size)]
+
+
+def run_chunk(scene: Scene, member0: int, threads: int | None = None) -> dict:
+    """Run members ``member0 … member0 + scene.ensemble − 1`` (in a worker process)."""
+    try:  # tell the driver this chunk started here (a second start means a retry)
+        from distributed import Queue
+
+        Queue("ti_dk-attempts").put((member0, os.getpid()))
+    except (ImportError, ValueError, RuntimeError):  # not on a Dask worker
+        pass
+    global _INIT_THREAD
+    if _INIT_THREAD != threading.get_ident():  # Taichi breaks when started in another thread (an
+        sim.init("cpu", threads)  # unguarded ti_dk.init in a script Dask re-imports): start it here
+        _INIT_THREAD = threading.get_ident()
+    res = sim.run(scene, progress=False, member0=member0)
+    return {"member0": member0, "times": res.times, "rows": res.rows, "diagnostics": res.diagnostics,
+            "final_density": res.final_density, "wall_time": res.wall_time}
+
+
+def run(scene: Scene, executor: str = "local", out: str | Path | None = None, progress: bool | None = None,
+        chunk: int | None = None, workers: int = 2, threads: int = 1, scheduler: str | None = None) -> sim.Result:
+    """Run ``scene`` in-process (``local``: the batched ensemble) or in chunks on Dask.
+
+    ``chunk``: members per chunk (default: the ensemble over 4 × workers); ``workers`` and
+    ``threads`` size the LocalCluster started on this machine unless ``scheduler`` (an address
+    such as ``tcp://host:8786``, e.g. from dask-jobqueue) names an existing cluster.
+    """
+    if executor not in EXECUTORS:
+        raise ConfigError(f"executor '{executor}': use one of {', '.join(EXECUTORS)}")
+    if executor == "local":
+        return sim.run(scene, out=out, progress=progress)
+    try:
+        from distributed import Client, LocalCluster, Queue, as_completed
+    except ImportError:
+        raise ConfigError("the dask executor needs Dask: pip install -e '.[dask]'") from None
+    if scene.dim > 1 and scene.ensemble == 1:
+        raise ConfigError("one member cannot be split into chunks: use --executor local")
+    wall0 = time.perf_counter()
+    size = chunk or max(1, math.ceil(scene.ensemble / (4 * workers)))
+    todo = chunks(scene.ensemble, size)
+    store = Path(out) / f"{scene.name}_{scene.method}_chunks" if out is not None else None
+    done = _load_chunks(store, scene) if store else {}
+    show = sys.stderr.isatty() if progress is None else progress
+    cluster = None
+    if scheduler is None:
+        cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=":0")
+    client = Client(scheduler or cluster)
+    attempts: dict[int, int] = {}
+    try:
+        queue = Queue("ti_dk-attempts", client=client)
+        futures = [client.submit(run_chunk, dataclasses.replace(scene, ensemble=n), m0, threads, pure=False,
+                                 retries=3, key=f"ti_dk-chunk-{m0}-{time.time_ns()}")
+                   for m0, n in todo if m0 not in done]
+        with tqdm(total=scene.ensemble, initial=sum(n for m0, n in todo if m0 in done), unit="member",
+                  desc=f"{scene.name}/{scene.method} on dask", disable=not show, file=sys.stderr) as bar:
+            for fut in as_completed(futures):
+                r = fut.result()
+                if r["member0"] not in done:  # a chunk is counted once, however often it ran
+                    done[r["member0"]] = r
+                    if store:
+                        _save_chunk(store, scene, r)
+                    bar.update(len(r["final_density"]))
+        while queue.qsize():
+            m0, _ = queue.get()
+            attempts[m0] = attempts.get(m0, 0) + 1
+    finally:
+        client.close()
+        if cluster is not None:
+            cluster.close()
+    return _merge(scene, [done[m0] for m0, _ in todo], out, time.perf_counter() - wall0,
+                  {"chunks": len(todo), "chunk_size": size, "retried": sorted(m for m, k in attempts.items() if k > 1)})
+
+
+def _merge(scene: Scene, parts: list[dict], out, wall: float, info: dict) -> sim.Result:
+    """Merge the chunks' accumulators in member order; per-step diagnostics are summed over members
+    (``min_density`` is the minimum)."""
+    hist = scene.histogram
+    rows = []
+    for i in range(len(parts[0]["rows"])):
+        cs = CellStats(scene.cells, scene.cell_volume, hist)
+        for p in parts:
+            cs.merge_row(p["rows"][i])
+        rows.append(cs.row())
+    diag = {}
+    for k in parts[0]["diagnostics"]:
+        v = np.stack([p["diagnostics"][k] for p in parts])
+        diag[k] = v[0] if k == "time" else v.min(axis=0) if k == "min_density" else v.sum(axis=0)
+    times = parts[0]["times"]
+    path = None
+    if out is not None:
+        path = Path(out) / f"{scene.name}_{scene.method}.h5"
+        rf = RunFile(path, scene, hist[1] - hist[0] + 1 if hist else None)
+        for t, row in zip(times, rows):
+            rf.write_row(t, row)
+        rf.write_diagnostics({k: list(v) for k, v in diag.items()})
+        rf.h5.attrs["chunks"] = json.dumps(info)
+        rf.close(wall)
+    return sim.Result(scene=scene, times=times, cell_volume=scene.cell_volume, stats=sim.stats_of(rows, hist),
+                      diagnostics=diag, final_density=np.concatenate([p["final_density"] for p in parts]),
+                      wall_time=wall, path=path, timing={"total": wall}, rows=rows, chunks=info)
+
+
+def _save_chunk(store: Path, scene: Scene, r: dict) -> None:
+    store.mkdir(parents=True, exist_ok=True)
+    with atomic_h5(store / f"chunk_{r['member0']:09d}.h5") as f:
+        f.attrs["scene"] = json.dumps(scene.to_dict())
+        f.attrs["member0"], f.attrs["wall_time"] = r["member0"], r["wall_time"]
+        f["times"], f["final_density"] = r["times"], r["final_density"]
+        for i, row in enumerate(r["rows"]):
+            for k, v in row.items():
+                f[f"rows/{i}/{k}"] = v
+        for k, v in r["diagnostics"].items():
+            f[f"diagnostics/{k}"] = v
+
+
+def _load_chunks(store: Path, scene: Scene) -> dict[int, dict]:
+    """Chunks a stopped run already finished (for this very scene)."""
+    done = {}
+    for path in sorted(store.glob("chunk_*.h5")):
+        with h5py.File(path) as f:
+            if json.loads(f.attrs["scene"]) != json.loads(json.dumps(scene.to_dict())):
+                raise ConfigError(f"{store} holds chunks of other scene settings: remove it or use another --out")
+            read = lambda g: {k: g[k][()] for k in g}  # noqa: E731
+            done[int(f.attrs["member0"])] = {
+                "member0": int(f.attrs["member0"]), "times": f["times"][()], "final_density": f["final_density"][()],
+                "rows": [read(f[f"rows/{i}"]) for i in range(len(f["rows"]))], "diagnostics": read(f["diagnostics"]),
+                "wall_time": float(f.attrs["wall_time"])}
+    return done
