@@ -18,7 +18,6 @@ import argparse
 import math
 import time
 
-import numpy as np
 import taichi as ti
 
 import ti_dk
@@ -88,9 +87,10 @@ def run_sparse(grid, dt, cells, lo, hi, ppc, reps):
 def run_flat(cells, fraction, ppc, reps):
     scene = load_scene("equilibrium1d", method="hybrid", cells=[cells, cells], init="uniform", ppc=ppc,
                        regrid_interval=0, threshold=1e-9, t_equil=None, histogram=None, ensemble=1)
+    from bench_hybrid import centred_box
+
     from ti_dk import initial
     from ti_dk.sim import make_solver
-    from bench_hybrid import centred_box
 
     s = make_solver(scene, initial.density_ppc(scene.init, scene.params, scene.cells, scene.lengths))
     s.set_region(centred_box((cells, cells), fraction)[None], 0)

@@ -7,7 +7,7 @@ from ti_dk import initial, load_scene, run, theory
 from ti_dk.regrid import mask
 from ti_dk.sim import make_solver
 
-from .test_particles import KEYS, _as_counts, _check
+from .test_particles import _as_counts, _check
 
 
 def _solver(scene):

@@ -8,7 +8,6 @@ from ti_dk import load_scene, run, theory
 from ti_dk.grid import Grid
 from ti_dk.particles import ParticleSolver
 
-
 KEYS = ("mean", "variance", "skewness", "kurtosis")
 
 

@@ -6,8 +6,7 @@ import numpy as np
 import pytest
 
 import ti_dk
-from ti_dk import SimulationError, load_scene, run
-from ti_dk import theory
+from ti_dk import SimulationError, load_scene, run, theory
 
 
 def test_result_and_file(tmp_path):
