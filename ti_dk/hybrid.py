@@ -14,8 +14,9 @@ from .grid import DIRICHLET, PERIODIC, cell_of, numpy_dtype
 from .particles import Walker
 
 BLOCK = 256  # slots per compaction block: an exclusive scan over blocks replaces a contended atomic
-REGRID_BIRTH = 1 << 27
-TOO_MANY = 2**31 - 1  # `need` when a cell asked for more particles than an id can number  # flag in the birth word of particles sampled at a regrid (ghosts carry step + 1)
+REGRID_BIRTH = 1 << 27  # flag in the birth word of particles sampled at a regrid (ghosts carry step + 1)
+TOO_MANY = 2**31 - 1  # `need` when a cell asked for more particles than an id can number
+REGRID_LOG = ("step", "boxes", "covered_cells", "efficiency", "created", "removed")  # one record per regrid
 
 
 def _clock() -> float:
@@ -176,9 +177,7 @@ class HybridSolver:
         self._regrid_apply(self.pool, self.cur, n)
         self._compact(self.pool, self.cur)
         self.cur = 1 - self.cur
-        self._ring()
-        self.n_ring = self._list(self.ring, self.ring_list)
-        self.n_cover = self._list(self.covered, self.cover_list)
+        self._lists()
         if self._check_need() > self.pool.capacity:  # the estimate bounds it; kept as a guard
             raise RuntimeError("particle pool estimate too small at a regrid")
         self._change += self.created[None] - self.removed[None]
@@ -193,7 +192,7 @@ class HybridSolver:
         st |= {"covered": self.covered.to_numpy(), "n_real": n,
                "x": self.pool.x.to_numpy()[self.cur, :, :top], "pid": self.pool.pid.to_numpy()[self.cur, :, :top],
                "boxes": np.array(boxes, dtype=np.int64).reshape(-1, 1 + 2 * self.dim)}
-        for k in ("step", "boxes", "covered_cells", "efficiency", "created", "removed"):
+        for k in REGRID_LOG:
             st[f"regrid_{k}"] = np.array([r[k] for r in self.regrids])
         return st
 
@@ -211,14 +210,11 @@ class HybridSolver:
         self.n_real.from_numpy(n.astype(np.int32))
         self.cur = 0
         self.covered.from_numpy(st["covered"])
-        self._ring()
-        self.n_ring = self._list(self.ring, self.ring_list)
-        self.n_cover = self._list(self.covered, self.cover_list)
+        self._lists()
         self.boxes = [[] for _ in range(self.ensemble)]
         for row in st["boxes"]:
             self.boxes[row[0]].append((tuple(int(v) for v in row[1:1 + self.dim]), tuple(int(v) for v in row[1 + self.dim:])))
-        keys = ("step", "boxes", "covered_cells", "efficiency", "created", "removed")
-        self.regrids = [{k: st[f"regrid_{k}"][i].item() for k in keys} for i in range(len(st["regrid_step"]))]
+        self.regrids = [{k: st[f"regrid_{k}"][i].item() for k in REGRID_LOG} for i in range(len(st["regrid_step"]))]
 
     def density(self) -> np.ndarray:
         return self.spde.density()
@@ -246,6 +242,12 @@ class HybridSolver:
         walls = self.grid.reservoir_ppc_max * 3 ** (self.dim - 1) * masks.sum(axis=axes) if self.grid.has_dirichlet else 0
         need = float(np.max(inside + walls)) if self.ensemble else 0.0
         return int(1.5 * need + 4 * math.sqrt(need) + 64)
+
+    def _lists(self) -> None:
+        """Ghost ring and the flat lists of ring and covered cells, from ``covered``."""
+        self._ring()
+        self.n_ring = self._list(self.ring, self.ring_list)
+        self.n_cover = self._list(self.covered, self.cover_list)
 
     @staticmethod
     def _list(flags, out) -> int:
