@@ -16,7 +16,7 @@ import numpy as np
 import taichi as ti
 
 import ti_dk
-from ti_dk import initial, load_scene
+from ti_dk import load_scene
 from ti_dk.sim import make_solver
 
 
@@ -52,7 +52,7 @@ def main():
     ti_dk.init(args.arch)
     common = dict(cells=args.cells, init="uniform", ppc=args.ppc, t_equil=None, histogram=None, ensemble=1)
     fv_scene = load_scene("equilibrium1d", method="fv", **common)
-    ppc = initial.density_ppc(fv_scene.init, fv_scene.params, fv_scene.cells, fv_scene.lengths)
+    ppc = fv_scene.initial_ppc
     fv = make_solver(fv_scene, ppc)
     per_step(fv, args.reps, 2)  # warm the machine up
     fv_ms = 1e3 * per_step(fv, args.reps)
@@ -70,7 +70,7 @@ def main():
         walked = s.diagnostics()["particles"] + int(s.ring.to_numpy().sum() * args.ppc)
         print(f"| {100 * fraction:g} % | {ms:.2f} | {ms / fv_ms:.2f} | {walked} | {walked / ms / 1e3:.1f} |")
     ell = load_scene("ellipse2d", cells=args.cells)
-    s = make_solver(ell, initial.density_ppc(ell.init, ell.params, ell.cells, ell.lengths))
+    s = make_solver(ell, ell.initial_ppc)
     for n in range(50):
         s.step(n)
     ti.sync()

@@ -89,10 +89,9 @@ def run_flat(cells, fraction, ppc, reps):
                        regrid_interval=0, threshold=1e-9, t_equil=None, histogram=None, ensemble=1)
     from bench_hybrid import centred_box
 
-    from ti_dk import initial
     from ti_dk.sim import make_solver
 
-    s = make_solver(scene, initial.density_ppc(scene.init, scene.params, scene.cells, scene.lengths))
+    s = make_solver(scene, scene.initial_ppc)
     s.set_region(centred_box((cells, cells), fraction)[None], 0)
     total = 0
     t = None

@@ -3,7 +3,7 @@ Poisson-binomial void, positivity, one ghost set per cell and independence of th
 import numpy as np
 import pytest
 
-from ti_dk import initial, load_scene, run, theory
+from ti_dk import load_scene, run, theory
 from ti_dk.regrid import mask
 from ti_dk.sim import make_solver
 
@@ -11,7 +11,7 @@ from .test_particles import _as_counts, _check
 
 
 def _solver(scene):
-    return make_solver(scene, initial.density_ppc(scene.init, scene.params, scene.cells, scene.lengths))
+    return make_solver(scene, scene.initial_ppc)
 
 
 def _run_steps(s, steps, check=None):

@@ -80,10 +80,9 @@ def test_restart_refuses_other_settings(tmp_path):
 
 # -- the extremes: each runs correctly or is refused with a message, never a silent NaN ------
 def _steps(scene, steps, check=None):
-    from ti_dk import initial
     from ti_dk.sim import make_solver
 
-    s = make_solver(scene, initial.density_ppc(scene.init, scene.params, scene.cells, scene.lengths))
+    s = make_solver(scene, scene.initial_ppc)
     mass = [s.diagnostics()["mass"] if hasattr(s, "regrids") or scene.method != "particle" else None]
     for n in range(steps):
         s.step(n)
@@ -139,10 +138,9 @@ def test_extreme_particle_regions_conserve(region):
     boundary = [["neumann", "neumann"], "periodic"] if region == "on a Neumann wall" else "periodic"
     scene = load_scene("equilibrium1d", method="hybrid", cells=[10, 8], lengths=[1.0, 2.0], ppc=4,
                        regrid_interval=0, threshold=1, boundary=boundary, ensemble=2, t_equil=None, histogram=None)
-    from ti_dk import initial
     from ti_dk.sim import make_solver
 
-    s = make_solver(scene, initial.density_ppc(scene.init, scene.params, scene.cells, scene.lengths))
+    s = make_solver(scene, scene.initial_ppc)
     m = np.zeros((10, 8), dtype=bool)
     if region == "one cell":
         m[4, 3] = True

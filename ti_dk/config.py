@@ -21,6 +21,8 @@ if sys.version_info >= (3, 11):
 else:  # pragma: no cover - exercised on Python 3.10 only
     import tomli as tomllib
 
+import numpy as np
+
 from . import initial
 from .grid import Grid
 from .regrid import RegridParams
@@ -129,6 +131,11 @@ class Scene:
     def regrid(self) -> RegridParams:
         return RegridParams(threshold=self.threshold, buffer=self.buffer, efficiency=self.grid_efficiency,
                             min_box=self.min_box, max_box=self.max_box)
+
+    @property
+    def initial_ppc(self) -> np.ndarray:
+        """The initial condition on the cell centres, in particles per cell."""
+        return initial.density_ppc(self.init, self.params, self.cells, self.lengths)
 
     @property
     def params(self) -> dict[str, Any]:

@@ -22,7 +22,7 @@ from tqdm import tqdm
 
 from . import sim
 from .config import ConfigError, Scene
-from .io import RunFile, atomic_h5
+from .io import RunFile, atomic_h5, read_group, read_rows, same_scene, scene_json, write_group, write_rows
 from .stats import CellStats
 
 EXECUTORS = ("local", "dask")
@@ -141,14 +141,11 @@ def _merge(scene: Scene, parts: list[dict], out, wall: float, info: dict) -> sim
 def _save_chunk(store: Path, scene: Scene, r: dict) -> None:
     store.mkdir(parents=True, exist_ok=True)
     with atomic_h5(store / f"chunk_{r['member0']:09d}.h5") as f:
-        f.attrs["scene"] = json.dumps(scene.to_dict())
+        f.attrs["scene"] = scene_json(scene)
         f.attrs["member0"], f.attrs["wall_time"] = r["member0"], r["wall_time"]
         f["times"], f["final_density"] = r["times"], r["final_density"]
-        for i, row in enumerate(r["rows"]):
-            for k, v in row.items():
-                f[f"rows/{i}/{k}"] = v
-        for k, v in r["diagnostics"].items():
-            f[f"diagnostics/{k}"] = v
+        write_rows(f, r["rows"])
+        write_group(f, "diagnostics", r["diagnostics"])
 
 
 def _load_chunks(store: Path, scene: Scene) -> dict[int, dict]:
@@ -156,11 +153,10 @@ def _load_chunks(store: Path, scene: Scene) -> dict[int, dict]:
     done = {}
     for path in sorted(store.glob("chunk_*.h5")):
         with h5py.File(path) as f:
-            if json.loads(f.attrs["scene"]) != json.loads(json.dumps(scene.to_dict())):
+            if not same_scene(f, scene):
                 raise ConfigError(f"{store} holds chunks of other scene settings: remove it or use another --out")
-            read = lambda g: {k: g[k][()] for k in g}  # noqa: E731
             done[int(f.attrs["member0"])] = {
                 "member0": int(f.attrs["member0"]), "times": f["times"][()], "final_density": f["final_density"][()],
-                "rows": [read(f[f"rows/{i}"]) for i in range(len(f["rows"]))], "diagnostics": read(f["diagnostics"]),
+                "rows": read_rows(f), "diagnostics": read_group(f["diagnostics"]),
                 "wall_time": float(f.attrs["wall_time"])}
     return done

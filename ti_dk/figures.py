@@ -93,7 +93,7 @@ def fig4(ensemble: int, out: Path, plt) -> dict:
                for m in (*METHODS, "hybrid")}
     scene = results["fv"].scene
     x = (np.arange(100) + 0.5) / 100
-    ppc0 = initial_ppc(scene)
+    ppc0 = scene.initial_ppc
     row = -1
     t = results["fv"].times[row]
     exact = theory.particle_counts_periodic1d(ppc0, 1.0, t)
@@ -117,12 +117,6 @@ def fig4(ensemble: int, out: Path, plt) -> dict:
     return _save(fig, out, "fig4", data)
 
 
-def initial_ppc(scene) -> np.ndarray:
-    from . import initial
-
-    return initial.density_ppc(scene.init, scene.params, scene.cells, scene.lengths)
-
-
 def _save(fig, out: Path, name: str, data: dict) -> dict:
     out.mkdir(parents=True, exist_ok=True)
     fig.tight_layout()
@@ -144,14 +138,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--out", default="renders/figures", help="output directory")
     p.add_argument("--arch", default="cpu")
     args = p.parse_args(argv)
-    try:
-        import matplotlib
+    import matplotlib  # a core dependency (the frames use its colormap)
 
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-    except ImportError:
-        print("ti_dk: error: figures need matplotlib: pip install -e '.[plots]'", file=sys.stderr)
-        return 2
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
     fn, default = FIGURES[args.figure]
     if args.ensemble is not None and args.ensemble < 2:
         print("ti_dk: error: --ensemble needs at least 2 members", file=sys.stderr)

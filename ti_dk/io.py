@@ -40,7 +40,7 @@ class RunFile:
         self.h5 = h5py.File(path, "w")
         self.path = path
         a = self.h5.attrs
-        a["scene"] = json.dumps(scene.to_dict())
+        a["scene"] = scene_json(scene)
         a["versions"] = json.dumps(versions())
         a["seed"] = np.uint64(scene.seed)
         a["created"] = time.strftime("%Y-%m-%dT%H:%M:%S%z")
@@ -102,6 +102,36 @@ class RunFile:
             self.h5.attrs["error"] = error
         self.h5.attrs["complete"] = error is None
         self.h5.close()
+
+
+def scene_json(scene) -> str:
+    """The scene as stored in every file ti_dk writes (the ``scene`` attribute)."""
+    return json.dumps(scene.to_dict())
+
+
+def same_scene(h5, scene) -> bool:
+    """Whether an HDF5 file was written for exactly these scene settings."""
+    return json.loads(h5.attrs["scene"]) == json.loads(scene_json(scene))
+
+
+def write_group(f, name: str, table: dict) -> None:
+    """One dataset per entry of ``table`` under ``name``."""
+    for k, v in table.items():
+        f.create_dataset(f"{name}/{k}", data=np.asarray(v))
+
+
+def read_group(g) -> dict:
+    return {k: g[k][()] for k in g}
+
+
+def write_rows(f, rows: list[dict]) -> None:
+    """Statistics rows (with their accumulators) as ``rows/<i>/<key>``."""
+    for i, row in enumerate(rows):
+        write_group(f, f"rows/{i}", row)
+
+
+def read_rows(f) -> list[dict]:
+    return [read_group(f[f"rows/{i}"]) for i in range(len(f["rows"]))] if "rows" in f else []
 
 
 @contextmanager

@@ -16,12 +16,21 @@ import numpy as np
 import taichi as ti
 from tqdm import tqdm
 
-from . import initial
 from .config import ConfigError, Scene
 from .fv import SPDESolver
 from .grid import Grid
 from .hybrid import HybridSolver
-from .io import RunFile, atomic_h5, write_openpmd
+from .io import (
+    RunFile,
+    atomic_h5,
+    read_group,
+    read_rows,
+    same_scene,
+    scene_json,
+    write_group,
+    write_openpmd,
+    write_rows,
+)
 from .particles import ParticleSolver
 from .stats import CellStats
 
@@ -148,7 +157,7 @@ def run(scene: Scene, out: str | Path | None = None, progress: bool | None = Non
     if not _initialized():
         init(arch, threads)
     wall0 = time.perf_counter()
-    ppc = initial.density_ppc(scene.init, scene.params, scene.cells, scene.lengths)
+    ppc = scene.initial_ppc
     try:
         solver = make_solver(scene, ppc, member0)
         other = make_solver(dataclasses.replace(scene, method=scene.compare), ppc, member0) if scene.compare else None
@@ -327,22 +336,17 @@ def _snapshot(base: Path, n: int, scene: Scene, solver) -> None:
 def _write_checkpoint(path: Path, scene: Scene, solver, other, prog: _Progress) -> None:
     """Everything needed to resume at ``prog.step``; written to a temporary name, then renamed."""
     with atomic_h5(path) as f:  # interrupted (SIGTERM): the previous checkpoint stays the latest
-        f.attrs["scene"] = json.dumps(scene.to_dict())
+        f.attrs["scene"] = scene_json(scene)
         f.attrs["step"] = prog.step
         f.attrs["timing"] = json.dumps(prog.timing | ({"hybrid": solver.timing} if hasattr(solver, "timing") else {}))
         for name, s in (("solver", solver), ("compare", other)):
             if s is not None:
-                for k, v in s.state().items():
-                    f.create_dataset(f"{name}/{k}", data=v)
+                write_group(f, name, s.state())
         f.create_dataset("times", data=np.array(prog.times, dtype=np.float64))
-        for i, row in enumerate(prog.rows):
-            for k, v in row.items():
-                f.create_dataset(f"rows/{i}/{k}", data=v)
-        for group, table in (("diag", prog.diag), ("frames", prog.frames)):
-            for k, v in table.items():
-                f.create_dataset(f"{group}/{k}", data=np.asarray(v))
-        for k, v in (prog.pooled or {}).items():
-            f.create_dataset(f"pooled/{k}", data=v)
+        write_rows(f, prog.rows)
+        write_group(f, "diag", prog.diag)
+        write_group(f, "frames", prog.frames)
+        write_group(f, "pooled", prog.pooled or {})
 
 
 def _read_checkpoint(path: Path, scene: Scene, solver, other) -> _Progress:
@@ -353,19 +357,17 @@ def _read_checkpoint(path: Path, scene: Scene, solver, other) -> _Progress:
     except OSError as exc:
         raise ConfigError(f"--restart {path}: not a readable checkpoint ({exc})") from None
     with f:
-        if json.loads(f.attrs["scene"]) != json.loads(json.dumps(scene.to_dict())):
+        if not same_scene(f, scene):
             raise ConfigError(f"--restart {path}: the checkpoint was written for other scene settings; "
                               "restart with the same scene, method and --set values")
-        read = lambda g: {k: g[k][()] for k in g}  # noqa: E731
-        solver.load_state(read(f["solver"]))
+        solver.load_state(read_group(f["solver"]))
         if other is not None:
-            other.load_state(read(f["compare"]))
+            other.load_state(read_group(f["compare"]))
         timing = json.loads(f.attrs["timing"])
         if "hybrid" in timing:
             solver.timing = timing.pop("hybrid")
-        prog = _Progress(step=int(f.attrs["step"]), times=list(f["times"][()]), timing=timing,
-                         rows=[read(f[f"rows/{i}"]) for i in range(len(f["times"]))],
-                         diag={k: list(v) for k, v in read(f["diag"]).items()},
-                         frames={k: list(v) for k, v in read(f["frames"]).items()},
-                         pooled=read(f["pooled"]) if "pooled" in f else None)
+        prog = _Progress(step=int(f.attrs["step"]), times=list(f["times"][()]), timing=timing, rows=read_rows(f),
+                         diag={k: list(v) for k, v in read_group(f["diag"]).items()},
+                         frames={k: list(v) for k, v in read_group(f["frames"]).items()},
+                         pooled=read_group(f["pooled"]) or None if "pooled" in f else None)
     return prog

@@ -25,7 +25,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from . import config, initial, sim, theory
+from . import config, sim, theory
 
 KEYS = ("mean", "variance", "skewness", "kurtosis")
 
@@ -54,7 +54,7 @@ def void_settings() -> list[Setting]:
 
 
 def void_error(res: sim.Result, members: int, t: float) -> dict[str, float]:
-    ppc0 = initial.density_ppc(res.scene.init, res.scene.params, res.scene.cells, res.scene.lengths).round()
+    ppc0 = res.scene.initial_ppc.round()
     mean = theory.particle_counts_periodic1d(ppc0, 1.0, t)["mean"]
     cells = (mean > 0.5) & (mean < 10)
     exact, se = theory.void_reference(ppc0, 1.0, t, members, cells, replicas=100)
@@ -68,7 +68,7 @@ def void_error(res: sim.Result, members: int, t: float) -> dict[str, float]:
 
 def ellipse_error(res: sim.Result, t: float) -> dict[str, float]:
     sc = res.scene
-    ppc0 = initial.density_ppc(sc.init, sc.params, sc.cells, sc.lengths).round()
+    ppc0 = sc.initial_ppc.round()
     Px, Py = (theory.cell_transition(n, L, t) for n, L in zip(sc.cells, sc.lengths))
     # exact per cell: a particle from cell (a, b) lands in (i, j) with probability Px[a, i] Py[b, j]
     m = Px.T @ ppc0 @ Py
