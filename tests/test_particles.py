@@ -43,12 +43,13 @@ def test_void_counts_are_poisson_binomial():
     res = run(scene)
     ppc0 = np.where(np.abs((np.arange(100) + 0.5) / 100 - 0.5) <= 0.25, 0, 20)
     for row, t in enumerate(res.times):
-        P = theory.cell_transition(100, 1.0, t)
+        steps = round(t / scene.dt)
+        P = theory.cell_transition(100, 1.0, scene.dt, steps)
         pmfs = [theory.poisson_binomial_pmf(P[:, i], ppc0) for i in range(100)]
         # low-density cells (the interesting ones) with at least 0.5 particles on average
         cells = np.array([(np.arange(len(p)) * p).sum() for p in pmfs]) > 0.5
         assert cells.sum() > 50
-        exact, se = theory.void_reference(ppc0, 1.0, t, scene.ensemble, cells)
+        exact, se = theory.void_reference(ppc0, 1.0, scene.dt, steps, scene.ensemble, cells)
         # the PMF route and the cumulant route to the exact moments agree
         assert np.allclose([(np.arange(len(p)) * p).sum() for p in pmfs], exact["mean"])
         assert (exact["mean"][cells] < 5).any()

@@ -30,11 +30,12 @@ from .regrid import RegridParams
 SCENE_DIR = Path(__file__).resolve().parent.parent / "scenes"
 METHODS = ("fv", "gaussian", "particle", "hybrid")
 SPDES = ("fv", "gaussian")  # the SPDE a hybrid run keeps on the whole grid
-GHOST_PROFILES = ("linear", "uniform")  # how sampled particles lie in their cell (uniform: paper §3)
+GHOST_PROFILES = ("mean", "linear", "uniform")  # how sampled particles lie in their cell (see HybridSolver)
 BOUNDARY_KINDS = ("periodic", "neumann", "dirichlet")
 PRECISIONS = ("f32", "f64")
 PARTICLE_INITS = ("per_cell", "exact_uniform")
 ID_BITS_MIN = 8  # hybrid particle ids: birth cell in the high bits, at least this many for the index in the cell
+HYBRID_STEP_LIMIT = 1 << 27  # hybrid: particle steps a run may take (birth steps live in 27 bits)
 CLAMP_WARN = 1e-3  # warn when a particle step is clamped with more than this probability
 
 
@@ -75,7 +76,8 @@ class Scene:
     histogram: tuple[int, int] | None = None
     particle_init: str = "per_cell"
     spde: str = "fv"
-    ghost_profile: str = "linear"
+    ghost_profile: str = "mean"
+    particle_substeps: int = 1  # hybrid: particle steps of Δt/k per SPDE step (paper end of §3.1)
     compare: str | None = None  # a second method run on the same initial condition, drawn beside
     movie_frames: int = 48  # frames evenly spaced in time when a movie is asked for
     regrid_interval: int = 10
@@ -124,8 +126,10 @@ class Scene:
 
     @property
     def clamp_probability(self) -> float:
-        """Probability that one particle step along the finest axis exceeds Δx (and is clamped)."""
-        return math.erfc(min(self.dx) / math.sqrt(2 * self.dt))
+        """Probability that one particle step (Δt / particle_substeps in the hybrid) along the finest axis
+        exceeds Δx (and is clamped)."""
+        substeps = self.particle_substeps if self.method == "hybrid" else 1
+        return math.erfc(min(self.dx) / math.sqrt(2 * self.dt / substeps))
 
     @property
     def regrid(self) -> RegridParams:
@@ -271,7 +275,7 @@ def make_scene(flat: dict[str, Any]) -> Scene:
             raise ConfigError(f"compare = {flat['compare']!r}: use one of {', '.join(METHODS)}, or none")
         if flat["compare"] != kw.get("method", _FIELDS["method"].default):  # comparing with itself: nothing
             kw["compare"] = flat["compare"]
-    for key in ("ensemble", "sample_every", "min_box", "max_box", "movie_frames"):
+    for key in ("ensemble", "sample_every", "min_box", "max_box", "movie_frames", "particle_substeps"):
         if key in flat:
             kw[key] = _int(key, flat[key], minimum=1)
     for key in ("regrid_interval", "buffer"):
@@ -325,6 +329,11 @@ def _check_time_step(scene: Scene) -> None:
             f"C = {scene.C} is beyond the explicit stability limit C < {limit:.4g} of the FV scheme on this grid: "
             f"lower C (e.g. --set C={limit / 2:.4g}) or set allow_unstable=true for a stability experiment"
         )
+    if scene.method == "hybrid" and scene.n_steps * scene.particle_substeps >= HYBRID_STEP_LIMIT:
+        raise ConfigError(
+            f"t_end = {scene.t_end} is {scene.n_steps * scene.particle_substeps:,} particle steps; the hybrid numbers "
+            f"particle births in 27 bits: give fewer than {HYBRID_STEP_LIMIT:,} (shorter t_end, larger C or fewer "
+            "particle_substeps)")
     if scene.method in ("particle", "hybrid") and scene.clamp_probability > CLAMP_WARN:
         warnings.warn(
             f"C = {scene.C}: a particle step is clamped to ±Δx with probability {scene.clamp_probability:.2g} "

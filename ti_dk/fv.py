@@ -29,13 +29,14 @@ class SPDESolver:
     """
 
     def __init__(self, grid: Grid, dt: float, ensemble: int, seed: int, real=ti.f64, gaussian: bool = False,
-                 member0: int = 0):
+                 member0: int = 0, noise: bool = True):
         self.grid, self.dt, self.ensemble, self.real, self.gaussian = grid, dt, ensemble, real, gaussian
         self.member0 = member0  # global index of member 0: a member's noise depends on it, not on the chunking
         self.dim = grid.dim
         self.n = grid.cells
         self.key = rng.seed_key(seed)
-        self.noise_scale = 1.0 / (dt * grid.cell_volume) ** 0.5  # 1/√(Δt V_c) of eq. (7)
+        # 1/√(Δt V_c) of eq. (7); 0 without noise: the deterministic scheme, eq. (10)
+        self.noise_scale = 1.0 / (dt * grid.cell_volume) ** 0.5 if noise else 0.0
         # the layer of upper boundary faces along each axis, member index first
         self.upper_layer = [(ensemble, *(1 if b == a else m for b, m in enumerate(self.n))) for a in range(self.dim)]
         faces = tuple(m + 1 for m in self.n)

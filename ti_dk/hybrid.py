@@ -8,15 +8,17 @@ import numpy as np
 import taichi as ti
 
 from . import regrid, rng
-from .config import ID_BITS_MIN
+from .config import HYBRID_STEP_LIMIT, ID_BITS_MIN
 from .fv import SPDESolver
 from .grid import DIRICHLET, PERIODIC, cell_of, numpy_dtype
 from .particles import Walker
 
 BLOCK = 256  # slots per compaction block: an exclusive scan over blocks replaces a contended atomic
-REGRID_BIRTH = 1 << 27  # flag in the birth word of particles sampled at a regrid (ghosts carry step + 1)
+REGRID_BIRTH = HYBRID_STEP_LIMIT  # flag in the birth word of particles sampled at a regrid (ghosts: step + 1)
 TOO_MANY = 2**31 - 1  # `need` when a cell asked for more particles than an id can number
-REGRID_LOG = ("step", "boxes", "covered_cells", "efficiency", "created", "removed")  # one record per regrid
+# one record per regrid; on_demand: members regridded off schedule (0: a scheduled regrid of all)
+REGRID_LOG = ("step", "boxes", "covered_cells", "efficiency", "created", "removed", "on_demand")
+FLOOR = 1.0  # an uncovered cell below FLOOR · threshold particles calls a regrid before the next step
 
 
 def _clock() -> float:
@@ -75,14 +77,18 @@ class HybridSolver:
     """
 
     def __init__(self, spde: SPDESolver, params: regrid.RegridParams, regrid_interval: int, seed: int,
-                 ghost_profile: str = "linear"):
+                 ghost_profile: str = "mean", substeps: int = 1):
         grid = spde.grid
-        self.linear_ghosts = ghost_profile == "linear"
+        self.profile, self.substeps = ghost_profile, substeps
         self.spde, self.params, self.regrid_interval = spde, params, regrid_interval
         self.grid, self.dt, self.ensemble, self.real = grid, spde.dt, spde.ensemble, spde.real
         self.dim, self.n = grid.dim, grid.cells
         self.key = rng.seed_key(seed)
-        self.walker = Walker(grid, spde.dt, spde.real, seed, spde.member0)
+        self.walker = Walker(grid, spde.dt / substeps, spde.real, seed, spde.member0)  # one particle sub-step
+        if ghost_profile == "mean":  # q̄: the deterministic scheme, eq. (10), the same for every member
+            self.mean = SPDESolver(grid, spde.dt, 1, seed, spde.real, noise=False)
+        if substeps > 1:
+            self.q_old = ti.field(spde.real, shape=(spde.ensemble, *grid.cells))  # q^n while q holds q^{n+1,*} [1/volume]
         self.offsets = list(itertools.product((-1, 0, 1), repeat=self.dim))  # the 3^d Chebyshev neighbours
         self.padded = tuple(m + 2 for m in self.n)  # the grid plus one layer of ghost cells per side
         self.id_bits = 32 - math.ceil(math.log2(math.prod(self.padded)))
@@ -98,6 +104,7 @@ class HybridSolver:
         self.count = ti.field(ti.i32, shape=(E, *n))  # particles ending the walk in each covered cell
         self.dN = ti.field(ti.i32, shape=(E, *n))  # ΔN: net particles the region gave each uncovered cell
         self.n_real = ti.field(ti.i32, shape=E)  # particles of each member between steps
+        self.low = ti.field(ti.i32, shape=E)  # uncovered cells below the regrid floor, per member
         self.need = ti.field(ti.i32, shape=())  # most slots a member asked for (TOO_MANY: a cell overflowed)
         self.clamped = ti.field(ti.i64, shape=())  # axis steps clamped to ±Δx in the last walk
         self.p_inflow = ti.field(ti.i64, shape=())  # particles injected minus absorbed at Dirichlet sides
@@ -114,47 +121,81 @@ class HybridSolver:
     # -- public -------------------------------------------------------------------------
     def initialize(self) -> None:
         """The first region from the (already initialised) SPDE, particles sampled into it."""
+        if self.profile == "mean":
+            self.mean.q.from_numpy(self.spde.q.to_numpy()[:1])
         self.regrid(0)
 
     def step(self, n: int) -> None:
         """Advance from step ``n`` to ``n + 1`` (see the class docstring)."""
         self._change = 0.0
-        if self.regrid_interval and n > 0 and n % self.regrid_interval == 0:
+        if self.regrid_interval and n > 0:
             t = _clock()
-            self.regrid(n)
+            if n % self.regrid_interval == 0:
+                self.regrid(n)
+            elif self._count_low(FLOOR * self.params.threshold):
+                self.regrid(n, np.flatnonzero(self.low.to_numpy()))
             self.timing["regrid"] += _clock() - t
         t0 = _clock()
         if self.n_cover == 0:  # no particle region: a plain SPDE step
+            self._step_mean(n)
             self.spde.step(n)
             self.timing["spde"] += _clock() - t0
             return
-        while True:  # the ghost fill is a pure function of (q^n, step): redo it in a larger pool
-            self._fill(self.pool, self.cur, n, self.n_ring)
-            need = self._check_need()
-            if need <= self.pool.capacity:
-                break
-            self._grow(2 * need)
-            self._drop_ghosts(self.pool, self.cur)
+        tilt_on = int(self.profile != "mean" or n > 0)  # at n = 0 the state is piecewise constant
+        k = self.substeps
+        if k > 1:
+            self.q_old.copy_from(self.spde.q)
+        self._fill_ghosts(n * k, 0.0, tilt_on)
+        self._step_mean(n)  # later sub-steps' ghosts read q̄^{n+1}, as they read q^{n+1,*}
         t1 = _clock()
         self.spde._fluxes(n)
         self.spde._update()
         t2 = _clock()
-        self._walk(self.pool, self.cur, n)
-        self._compact(self.pool, self.cur)
-        self.cur = 1 - self.cur
+        self.clamped[None] = 0
+        self.p_inflow[None] = 0
+        for s in range(k):  # particle sub-steps of Δt/k; ghosts from q interpolated in time
+            if s > 0:
+                self._fill_ghosts(n * k + s, s / k, 1)
+            self._walk(self.pool, self.cur, n * k + s, int(s == k - 1))
+            self._compact(self.pool, self.cur)
+            self.cur = 1 - self.cur
         self._sync(self.n_cover, self.n_ring)
         self.spde._diagnose()
         t3 = _clock()
         self.timing["spde"] += t2 - t1
         self.timing["particles"] += (t1 - t0) + (t3 - t2)
 
-    def regrid(self, n: int) -> None:
-        """New region from the SPDE density at step ``n`` (tag, buffer, Berger–Rigoutsos)."""
+    def _step_mean(self, n: int) -> None:
+        if self.profile == "mean":
+            self.mean.step(n)
+
+    def _fill_ghosts(self, sub: int, w: float, tilt_on: int) -> None:
+        """Ghosts for particle sub-step ``sub`` from ``(1 − w) q^n + w q^{n+1,*}``; the fill is a pure
+        function of its inputs, so a pool that is too small is grown and the fill redone."""
+        while True:
+            self._fill(self.pool, self.cur, sub, self.n_ring, w, tilt_on)
+            need = self._check_need()
+            if need <= self.pool.capacity:
+                return
+            self._grow(2 * need)
+            self._drop_ghosts(self.pool, self.cur)
+
+    def regrid(self, n: int, members: np.ndarray | None = None) -> None:
+        """New region from the SPDE density at step ``n`` (tag, buffer, Berger–Rigoutsos) for
+        ``members`` (all by default; the others keep theirs).
+
+        Besides every ``regrid_interval`` steps, a member is regridded on demand before any step
+        that it starts with an uncovered cell below ``FLOOR · threshold`` particles. This is what keeps the
+        composite solution positive: FV itself goes negative at low density, and a ghost cell
+        holding ``λ = ℓ + α`` particles gives ``ℓ + 1`` ghosts with probability α, all of which may
+        walk in; neither can happen at a few particles per cell. (Seen before: an uncovered cell
+        next to the region in sphere3d went negative between two scheduled regrids.)
+        """
         ppc = self.spde.density() * self.grid.cell_volume
         tags = regrid.grow(regrid.tag(ppc, self.params.threshold), self.params.buffer, (None, *self.periodic))
-        masks = np.zeros(ppc.shape, dtype=bool)
+        masks = self.region()
         cache: dict[bytes, tuple] = {}  # members with the same tags get the same boxes
-        for e in range(self.ensemble):
+        for e in range(self.ensemble) if members is None else members:
             k = tags[e].tobytes()
             if k not in cache:
                 cache[k] = regrid.cluster(tags[e], self.params)
@@ -165,7 +206,8 @@ class HybridSolver:
         covered = int(masks.sum())
         self.regrids.append({"step": n, "boxes": n_boxes, "covered_cells": covered,
                              "efficiency": tagged / covered if covered else 1.0,
-                             "created": int(self.created[None]), "removed": float(self.removed[None])})
+                             "created": int(self.created[None]), "removed": float(self.removed[None]),
+                             "on_demand": 0 if members is None else len(members)})
 
     def set_region(self, masks: np.ndarray, n: int, ppc: np.ndarray | None = None) -> None:
         """Make ``masks`` (``(ensemble, *cells)`` booleans) the particle region at step ``n``."""
@@ -174,7 +216,8 @@ class HybridSolver:
         masks = np.broadcast_to(masks, (self.ensemble, *self.n))
         self._grow(self._estimate(masks, ppc))
         self.fresh.from_numpy(masks.astype(np.uint8))
-        self._regrid_apply(self.pool, self.cur, n)
+        tilt_on = int(self.profile != "mean" or n > 0)  # the initial state is uniform in each cell
+        self._regrid_apply(self.pool, self.cur, n * self.substeps, tilt_on)
         self._compact(self.pool, self.cur)
         self.cur = 1 - self.cur
         self._lists()
@@ -189,6 +232,8 @@ class HybridSolver:
         top = max(1, int(n.max()))
         boxes = [(e, *lo, *hi) for e, bs in enumerate(self.boxes) for lo, hi in bs]
         st = {f"spde_{k}": v for k, v in self.spde.state().items()}
+        if self.profile == "mean":
+            st["mean_q"] = self.mean.q.to_numpy()
         st |= {"covered": self.covered.to_numpy(), "n_real": n,
                "x": self.pool.x.to_numpy()[self.cur, :, :top], "pid": self.pool.pid.to_numpy()[self.cur, :, :top],
                "boxes": np.array(boxes, dtype=np.int64).reshape(-1, 1 + 2 * self.dim)}
@@ -198,6 +243,8 @@ class HybridSolver:
 
     def load_state(self, st: dict[str, np.ndarray]) -> None:
         self.spde.load_state({k[5:]: v for k, v in st.items() if k.startswith("spde_")})
+        if self.profile == "mean":
+            self.mean.load_state({"q": st["mean_q"]})
         n, x, pid = st["n_real"], st["x"], st["pid"]
         self._grow(max(self.pool.capacity, int(1.5 * x.shape[1]) + 64))
         cap = self.pool.capacity
@@ -322,14 +369,39 @@ class HybridSolver:
         return C
 
     @ti.func
+    def _profile(self, J):
+        """The density the ghost tilts are read from at member-first index ``J``: q̄ (``mean``) or q."""
+        v = self.real(0.0)
+        if ti.static(self.profile == "mean"):
+            J0 = J
+            J0[0] = 0
+            v = self.mean.q[J0]
+        else:
+            v = self.spde.q[J]
+        return v
+
+    @ti.func
     def _tilt(self, e, C):
-        r"""Linear profile of cell ``C`` for :meth:`Walker.in_cell`: ``b_a = (q_{C+e_a} − q_{C−e_a}) / (2 q_C)``
-        clipped to [−2, 2] so the density stays ≥ 0 (centred SPDE slope; a Neumann side mirrors,
-        a Dirichlet side sees its reservoir). Zero with ``ghost_profile = 'uniform'``."""
+        r"""Linear profile of cell ``C`` for :meth:`Walker.in_cell`: ``b_a = (p_{C+e_a} − p_{C−e_a}) / (2 p_C)``
+        clipped to [−2, 2] so the density stays ≥ 0: the centred slope of the profile density ``p``
+        (a Neumann side mirrors, a Dirichlet side sees its reservoir). Zero with ``ghost_profile = 'uniform'``.
+
+        Which ``p`` (``ghost_profile``), measured on the paper's void case (benchmarks/RESULTS.md):
+
+        - ``uniform`` (paper §3): ``b = 0``. Near a density gradient the particles of a ghost cell do
+          not lie uniformly; uniform placement puts too many next to the low side and biases the
+          mean of the cells on both sides of the interface (6–12 standard errors).
+        - ``linear``: ``p = q`` of the member. The slope of a ghost cell next to the region reads the
+          covered neighbour's particle count, so the inflow grows with the region's own
+          fluctuation: positive feedback, variance of the first covered cells 8 % too high.
+        - ``mean`` (default): ``p = q̄``, the deterministic scheme (eq. 10) advanced alongside, the
+          same for every member: the profile of the ensemble mean, with no feedback from any
+          member's fluctuation. The count still comes from the member's own ``q``.
+        """
         b = ti.Vector.zero(self.real, self.dim)
-        if ti.static(self.linear_ghosts):
+        if ti.static(self.profile != "uniform"):
             J = self._member(e, C)
-            qc = self.spde.q[J]
+            qc = self._profile(J)
             for a in ti.static(range(self.dim)):
                 lo, hi = J, J
                 lo[a + 1] -= 1
@@ -338,14 +410,14 @@ class HybridSolver:
                 if ti.static(self.periodic[a]):
                     lo[a + 1] = (lo[a + 1] + self.n[a]) % self.n[a]
                     hi[a + 1] = hi[a + 1] % self.n[a]
-                    q_lo, q_hi = self.spde.q[lo], self.spde.q[hi]
+                    q_lo, q_hi = self._profile(lo), self._profile(hi)
                 else:
                     if C[a] > 0:
-                        q_lo = self.spde.q[lo]
+                        q_lo = self._profile(lo)
                     elif ti.static(self.grid.boundary[a][0] == DIRICHLET):
                         q_lo = self.real(self.grid.reservoir[a][0])
                     if C[a] < self.n[a] - 1:
-                        q_hi = self.spde.q[hi]
+                        q_hi = self._profile(hi)
                     elif ti.static(self.grid.boundary[a][1] == DIRICHLET):
                         q_hi = self.real(self.grid.reservoir[a][1])
                 if qc > 0:
@@ -353,9 +425,10 @@ class HybridSolver:
         return b
 
     @ti.func
-    def _sample(self, pool: ti.template(), buf, e, C, lam, step, birth):
-        """Append ℓ particles plus one with probability α (``lam = ℓ + α``) uniform in cell ``C``
-        (paper §3) to buffer ``buf`` of member ``e``; returns how many."""
+    def _sample(self, pool: ti.template(), buf, e, C, lam, step, birth, tilt_on):
+        """Append ℓ particles plus one with probability α (``lam = ℓ + α``) to cell ``C`` (paper §3),
+        placed by :meth:`_tilt` (uniform where ``tilt_on`` is 0), in buffer ``buf`` of member ``e``;
+        returns how many."""
         lin = ti.u32(0)
         for a in ti.static(range(self.dim)):
             lin = lin * ti.u32(self.padded[a]) + ti.u32(C[a] + 1)
@@ -368,7 +441,7 @@ class HybridSolver:
         base = ti.atomic_add(pool.n[buf, e], m)
         ti.atomic_max(self.need[None], base + m)
         tilt = ti.Vector.zero(self.real, self.dim)
-        if m > 0 and self._inside(C):
+        if m > 0 and tilt_on and self._inside(C):
             tilt = self._tilt(e, C)
         for k in range(m):
             if base + k < pool.capacity:
@@ -409,8 +482,9 @@ class HybridSolver:
             self.ring[I] = ti.u8(r)
 
     @ti.kernel
-    def _fill(self, pool: ti.template(), cur: ti.i32, step: ti.i32, n_ring: ti.i32):
-        """Step 1: ghost particles from q^n (or the reservoir) appended after the real ones."""
+    def _fill(self, pool: ti.template(), cur: ti.i32, step: ti.i32, n_ring: ti.i32, w: ti.f64, tilt_on: ti.i32):
+        """Step 1: ghost particles appended after the real ones, from ``(1 − w) q^n + w q^{n+1,*}``
+        (``w = s/k`` at particle sub-step s of k; q^n itself when k = 1) or the reservoir."""
         vol = ti.static(self.grid.cell_volume)
         self.need[None] = 0
         for i in range(n_ring):
@@ -418,14 +492,31 @@ class HybridSolver:
             C = ti.Vector([I[a + 1] - 1 for a in ti.static(range(self.dim))])
             lam = 0.0
             if self._inside(C):
-                lam = ti.cast(self.spde.q[self._member(I[0], C)], ti.f64) * vol
+                J = self._member(I[0], C)
+                lam = ti.cast(self.spde.q[J], ti.f64)
+                if ti.static(self.substeps > 1):
+                    lam = (1.0 - w) * ti.cast(self.q_old[J], ti.f64) + w * lam
+                lam *= vol
             else:
                 for a in ti.static(range(self.dim)):
                     if C[a] < 0:
                         lam = self.grid.reservoir[a][0] * vol
                     elif C[a] >= self.n[a]:
                         lam = self.grid.reservoir[a][1] * vol
-            self._sample(pool, cur, I[0], C, lam, step, step + 1)
+            self._sample(pool, cur, I[0], C, lam, step, step + 1, tilt_on)
+
+    @ti.kernel
+    def _count_low(self, floor: ti.f64) -> ti.i32:
+        """Uncovered cells holding fewer than ``floor`` particles: per member in ``low``, and in all."""
+        vol = ti.static(self.grid.cell_volume)
+        for e in self.low:
+            self.low[e] = 0
+        total = 0
+        for J in ti.grouped(self.covered):
+            if not self.covered[J] and ti.cast(self.spde.q[J], ti.f64) * vol < floor:
+                self.low[J[0]] += 1
+                total += 1
+        return total
 
     @ti.kernel
     def _drop_ghosts(self, pool: ti.template(), cur: ti.i32):
@@ -433,10 +524,9 @@ class HybridSolver:
             pool.n[cur, e] = self.n_real[e]
 
     @ti.kernel
-    def _walk(self, pool: ti.template(), cur: ti.i32, step: ti.i32):
-        """Step 3: walk, keep what ends in the region (compacted into the other buffer), count ΔN."""
-        self.clamped[None] = 0
-        self.p_inflow[None] = 0
+    def _walk(self, pool: ti.template(), cur: ti.i32, step: ti.i32, last: ti.i32):
+        """Step 3 (one particle sub-step): walk, keep what ends in the region (compacted into the
+        other buffer), add to ΔN; on the ``last`` sub-step count the particles per covered cell."""
         for e, p in ti.ndrange(self.ensemble, pool.capacity):
             if p < pool.n[cur, e]:
                 ident = pool.pid[cur, e, p]
@@ -453,7 +543,8 @@ class HybridSolver:
                 pool.x[cur, e, p] = y
                 pool.keep[e, p] = ti.u8(keep)
                 if keep:
-                    self.count[D] += 1
+                    if last:
+                        self.count[D] += 1
                     if ghost:
                         O = self._origin(ident[0])
                         if self._inside(O):
@@ -545,7 +636,7 @@ class HybridSolver:
             self.dN[J] = 0
 
     @ti.kernel
-    def _regrid_apply(self, pool: ti.template(), cur: ti.i32, step: ti.i32):
+    def _regrid_apply(self, pool: ti.template(), cur: ti.i32, step: ti.i32, tilt_on: ti.i32):
         """Move to the region in ``fresh``: keep particles still covered, sample newly covered cells."""
         vol = ti.static(self.grid.cell_volume)
         self.need[None] = 0
@@ -555,7 +646,7 @@ class HybridSolver:
             if self.fresh[J] and not self.covered[J]:
                 C = ti.Vector([J[a + 1] for a in ti.static(range(self.dim))])
                 lam = ti.cast(self.spde.q[J], ti.f64) * vol
-                m = self._sample(pool, cur, J[0], C, lam, step, step | REGRID_BIRTH)
+                m = self._sample(pool, cur, J[0], C, lam, step, step | REGRID_BIRTH, tilt_on)
                 self.created[None] += m
                 self.removed[None] += lam
                 self.count[J] = m  # q is set below: the tilts of other cells read it here

@@ -121,7 +121,8 @@ def make_solver(scene: Scene, ppc: np.ndarray, member0: int = 0):
     solver = SPDESolver(gaussian=gaussian, **common)
     solver.initialize(ppc)
     if scene.method == "hybrid":
-        solver = HybridSolver(solver, scene.regrid, scene.regrid_interval, scene.seed, scene.ghost_profile)
+        solver = HybridSolver(solver, scene.regrid, scene.regrid_interval, scene.seed, scene.ghost_profile,
+                              scene.particle_substeps)
         solver.initialize()
     return solver
 

@@ -51,29 +51,109 @@ def poisson_binomial_pmf(p: np.ndarray, repeats: np.ndarray | None = None) -> np
     return pmf
 
 
-def cell_transition(cells: int, length: float, t: float, images: int = 3) -> np.ndarray:
-    """P[j, i]: probability that a Brownian particle (D = ½, variance t) started uniformly in cell j
-    of a periodic 1D domain ends in cell i. Exact: (G(d+h) − 2G(d) + G(d−h))/h, summed over images."""
+def clamped_step_cf(k: np.ndarray, dt: float, dx: float, nodes: int = 16) -> np.ndarray:
+    r"""Characteristic function E[cos(k D)] of one clamped step ``D = clamp(√Δt Z, −Δx, Δx)``.
+
+    The Gaussian part on (−Δx, Δx) by composite Gauss–Legendre quadrature, one panel of ``nodes``
+    points per half-period of the fastest ``cos(k x)`` (exact to round-off), plus the two atoms
+    ``P(|Z| > Δx/√Δt)/2`` at ±Δx.
+    """
+    s = math.sqrt(dt)
+    k = np.asarray(k, dtype=np.float64)
+    panels = max(1, math.ceil(float(np.abs(k).max(initial=0.0)) * 2 * dx / math.pi))
+    u, w = np.polynomial.legendre.leggauss(nodes)
+    edges = np.linspace(-dx, dx, panels + 1)
+    half = 0.5 * (edges[1] - edges[0])
+    x = (0.5 * (edges[:-1] + edges[1:])[:, None] + half * u[None, :]).ravel()
+    dens = np.exp(-0.5 * (x / s) ** 2) / (s * math.sqrt(2 * math.pi)) * np.tile(w, panels) * half
+    tail = math.erfc(dx / (s * math.sqrt(2)))  # P(|√Δt Z| > Δx)
+    out = np.empty(k.shape)
+    for i in range(0, k.size, 256):  # blocks of k keep the cos table small
+        kk = k.ravel()[i:i + 256]
+        out.ravel()[i:i + 256] = np.cos(np.multiply.outer(kk, x)) @ dens + tail * np.cos(kk * dx)
+    return out
+
+
+def cell_transition(cells: int, length: float, dt: float, steps: int, clamp: bool = True,
+                    fold: int = 64) -> np.ndarray:
+    r"""P[j, i]: probability that a particle started uniformly in cell j of a periodic 1D domain
+    ends in cell i after ``steps`` steps of the walk the particle solvers take.
+
+    Exact for i.i.d. increments with characteristic function φ (the clamped step of
+    :func:`clamped_step_cf`; with ``clamp=False`` the Gaussian ``exp(−k²Δt/2)``): in Fourier
+    series over the periodic domain, with ``k_m = 2πm/L`` and ``sinc(z) = sin z / z``,
+
+    .. math:: P_{j→i} = \frac{Δx}{L} \sum_m \operatorname{sinc}^2(k_m Δx/2)\, φ(k_m)^n\, e^{i k_m (i−j) Δx},
+
+    the n-fold convolution of the step done mode by mode. Modes ``|m| ≤ fold·cells`` are kept, or
+    only those where ``exp(−n k²Δt/2) > 1e-20`` once the clamp's share of φ (at most
+    ``2 erfc(Δx/√(2Δt))``) raised to the n is below 1e-16. Rows sum to 1; one step is exact to
+    ~4e-6 (the series of a density with jumps), a few steps to round-off.
+    """
     h = length / cells
-    d = (np.arange(cells)[None, :] - np.arange(cells)[:, None]) * h
-    s = math.sqrt(t)
-    P = np.zeros((cells, cells))
-    for m in range(-images, images + 1):
-        dm = d + m * length
-        P += (_box_gauss_antiderivative(dm + h, s) - 2 * _box_gauss_antiderivative(dm, s)
-              + _box_gauss_antiderivative(dm - h, s)) / h
-    return P
+    M = fold * cells
+    bound = 2 * math.erfc(h / math.sqrt(2 * dt)) if clamp else 0.0  # |φ(k)| ≤ exp(−k²Δt/2) + bound
+    if bound**steps < 1e-16:  # then modes past exp(−n k²Δt/2) = 1e-20 weigh nothing
+        M = min(M, math.ceil(math.sqrt(2 * 20 * math.log(10) / (steps * dt)) * length / (2 * math.pi)) + 1)
+    m = np.arange(-M, M + 1)
+    k = 2 * np.pi * m / length
+    if clamp:  # φ is even: evaluate it on m ≥ 0
+        phi = clamped_step_cf(k[m >= 0], dt, h)[np.abs(m)]
+    else:
+        phi = np.exp(-0.5 * k * k * dt)
+    w = np.sinc(k * h / (2 * np.pi)) ** 2 * phi**steps  # np.sinc(x) = sin(πx)/(πx)
+    folded = np.zeros(cells)
+    np.add.at(folded, m % cells, w)  # e^{i k_m d Δx} depends on m mod cells only
+    row = np.real(np.fft.ifft(folded)) * cells * h / length  # P as a function of d = i − j
+    d = (np.arange(cells)[None, :] - np.arange(cells)[:, None]) % cells
+    return np.maximum(row[d], 0.0)
 
 
-def particle_counts_periodic1d(ppc0: np.ndarray, length: float, t: float) -> dict[str, np.ndarray]:
-    """Exact count moments per cell at time t for ``ppc0[j]`` (integers) particles started uniformly
-    in each cell j of a periodic 1D domain: a Poisson-binomial sum over all particles."""
-    counts = np.asarray(ppc0)
-    if not np.allclose(counts, np.round(counts)):
-        raise ValueError("the exact answer needs whole particle numbers per cell")
-    P = cell_transition(len(counts), length, t)
-    p = np.repeat(P, np.round(counts).astype(int), axis=0)  # one row per particle
-    return poisson_binomial_moments(p, axis=0)
+def particle_counts_periodic(ppc0: np.ndarray, lengths, dt: float, steps: int,
+                             clamp: bool = True) -> dict[str, np.ndarray]:
+    r"""Exact count moments per cell after ``steps`` walk steps for ``ppc0[j] = ℓ_j + α_j`` particles
+    started uniformly in each cell j of a periodic box (any dimension), sampled as the solvers do
+    (ℓ_j particles plus one with probability α_j).
+
+    The walk's axes are independent, so a particle from cell j reaches cell i with probability
+    ``p_ji = Π_a P_a[j_a, i_a]`` (:func:`cell_transition` per axis), and the count is a
+    Poisson-binomial sum whose cumulants come from the power sums
+    ``S_k(i) = Σ_j (ℓ_j + α_j^k) p_ji^k``, each a separable product over axes:
+    κ1 = S1, κ2 = S1 − S2, κ3 = S1 − 3S2 + 2S3, κ4 = S1 − 7S2 + 12S3 − 6S4.
+    """
+    ppc0 = np.asarray(ppc0, dtype=np.float64)
+    lengths = np.broadcast_to(np.asarray(lengths, dtype=np.float64), (ppc0.ndim,))
+    P = [cell_transition(m, L, dt, steps, clamp) for m, L in zip(ppc0.shape, lengths)]
+    ell = np.floor(ppc0)
+    alpha = ppc0 - ell
+    S = []
+    for k in range(1, 5):
+        s = ell + alpha**k
+        for a, Pa in enumerate(P):  # contract source axis a with P_a^k, keeping the axis order
+            s = np.moveaxis(np.tensordot(s, Pa**k, axes=([a], [0])), -1, a)
+        S.append(s)
+    S1, S2, S3, S4 = S
+    return _from_cumulants(S1, S1 - S2, S1 - 3 * S2 + 2 * S3, S1 - 7 * S2 + 12 * S3 - 6 * S4)
+
+
+def count_in_cells(ppc0: np.ndarray, P: np.ndarray, cells: np.ndarray) -> dict[str, float]:
+    """Exact moments of the number of particles in the set ``cells`` (1D, transition matrix ``P``):
+    a Poisson-binomial sum with ``p_j = Σ_{i ∈ cells} P[j, i]`` per particle."""
+    p, repeats = _particles(P[:, cells].sum(1, keepdims=True), ppc0)
+    p, r = p[:, 0], repeats
+    q = 1.0 - p
+    return {k: float(v) for k, v in _from_cumulants((r * p).sum(), (r * p * q).sum(), (r * p * q * (1 - 2 * p)).sum(),
+                                                   (r * p * q * (1 - 6 * p * q)).sum()).items()}
+
+
+def _particles(P: np.ndarray, ppc0: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Rows of per-particle probabilities and how many particles share each row: ℓ_j at P[j]
+    and, where α_j > 0, one at α_j P[j]."""
+    ppc0 = np.asarray(ppc0, dtype=np.float64)
+    ell = np.floor(ppc0)
+    alpha = ppc0 - ell
+    frac = alpha > 0
+    return np.vstack([P, alpha[frac, None] * P[frac]]), np.concatenate([ell, np.ones(frac.sum())]).astype(int)
 
 
 def linear_scheme_variance(cells: tuple[int, ...], dt_over_dx2: tuple[float, ...], ppc: float,
@@ -110,15 +190,15 @@ def sampling_se(pmf: np.ndarray, members: int, replicas: int = 400, seed: int = 
             "skewness": np.nanstd(skew), "kurtosis": np.nanstd(kurt)}
 
 
-def void_reference(ppc0: np.ndarray, length: float, t: float, members: int, cells: np.ndarray,
+def void_reference(ppc0: np.ndarray, length: float, dt: float, steps: int, members: int, cells: np.ndarray,
                    replicas: int = 200) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
-    """The exact per-cell moments of particle counts at time ``t`` from the integer initial counts
-    ``ppc0`` (periodic 1D), and the sampling standard errors of an ensemble of ``members`` in the
-    ``cells`` asked for (NaN elsewhere)."""
-    exact = particle_counts_periodic1d(ppc0, length, t)
-    P = cell_transition(len(ppc0), length, t)
+    """The exact per-cell moments of particle counts after ``steps`` clamped steps from the initial
+    counts ``ppc0`` (periodic 1D, :func:`particle_counts_periodic1d`), and the sampling standard
+    errors of an ensemble of ``members`` in the ``cells`` asked for (NaN elsewhere)."""
+    exact = particle_counts_periodic(ppc0, length, dt, steps)
+    p, repeats = _particles(cell_transition(len(ppc0), length, dt, steps), ppc0)
     se = {k: np.full(len(ppc0), np.nan) for k in exact}
     for i in np.flatnonzero(cells):
-        for k, v in sampling_se(poisson_binomial_pmf(P[:, i], ppc0), members, replicas, seed=int(i)).items():
+        for k, v in sampling_se(poisson_binomial_pmf(p[:, i], repeats), members, replicas, seed=int(i)).items():
             se[k][i] = v
     return exact, se
