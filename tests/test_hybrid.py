@@ -7,7 +7,6 @@ import pytest
 
 from ti_dk import load_scene, theory
 from ti_dk.config import ClampWarning
-from ti_dk.hybrid import FLOOR
 from ti_dk.regrid import mask
 from ti_dk.sim import make_solver
 
@@ -220,14 +219,22 @@ def test_composite_stays_positive_with_regridding():
 
 
 def test_regrid_on_demand():
-    # a region kept for 1000 steps cannot follow an emptying ellipse: a regrid comes on demand
-    # as soon as an uncovered cell holds fewer than FLOOR · threshold particles
+    # a region kept for 1000 steps cannot follow an emptying ellipse: the cells that fall below
+    # the threshold are covered on demand, before the step, and the rest of the region is kept
     scene = load_scene("ellipse2d", method="hybrid", cells=[40, 40], regrid_interval=1000, ppc_outer=12,
                        ppc_inner=6, threshold=4.0, t_end=0.01, seed=5)
     s = _solver(scene)
-    h = _run_steps(s, 60)
+    start = s.region()
+    vol = s.grid.cell_volume
+    for n in range(60):
+        before = s.region()
+        s.step(n)
+        if s.regrids[-1]["step"] == n:  # extended at the start of this step
+            assert s.regrids[-1]["on_demand"] == 1 and np.all(s.region() >= before)
+        assert s.diagnostics()["negative_cells"] == 0
     demand = [r for r in s.regrids if r["on_demand"]]
-    assert demand and all(r["step"] % 1000 for r in demand)
-    assert h["negative_cells"].max() == 0
-    q = s.density() * s.grid.cell_volume
-    assert q[~s.region()].min() >= FLOOR * 4.0 - 2  # no uncovered cell far below the floor
+    assert len(demand) > 3 and (s.region() & ~start).sum() > 20
+    # what was below the threshold at the last extension is covered now
+    s.extend(60)
+    q = s.density() * vol
+    assert q[~s.region()].min() >= 4.0

@@ -18,7 +18,6 @@ REGRID_BIRTH = HYBRID_STEP_LIMIT  # flag in the birth word of particles sampled 
 TOO_MANY = 2**31 - 1  # `need` when a cell asked for more particles than an id can number
 # one record per regrid; on_demand: members regridded off schedule (0: a scheduled regrid of all)
 REGRID_LOG = ("step", "boxes", "covered_cells", "efficiency", "created", "removed", "on_demand")
-FLOOR = 1.0  # an uncovered cell below FLOOR · threshold particles calls a regrid before the next step
 
 
 def _clock() -> float:
@@ -52,12 +51,15 @@ class HybridSolver:
 
     1. the ghost ring (cells outside the region within Chebyshev distance 1 of it, and Dirichlet
        reservoir cells beyond covered boundary cells) gets ``ℓ`` particles plus one with
-       probability ``α``, where ``ℓ + α = max(q_I^n, 0) V_c``, uniform in the cell;
+       probability ``α``, where ``ℓ + α = max(q_I^n, 0) V_c`` (paper §3), placed with the linear
+       profile of :meth:`_tilt` (the slope of the deterministic q̄, by default);
     2. the SPDE advances everywhere, eq. (9), giving ``q^{n+1,*}`` and the face fluxes ``F``;
     3. every particle (real and ghost) takes one clamped step (:class:`Walker`); those ending in
        the region are kept, the rest dropped, and the net crossings are counted per uncovered
        cell: ``ΔN_I`` gains 1 for each real particle that leaves into ``I`` and loses 1 for each
-       ghost from ``I`` that enters;
+       ghost from ``I`` that enters. With ``particle_substeps = k`` (end of paper §3.1) this is
+       done k times with steps of Δt/k, the ghosts of sub-step s sampled afresh from
+       ``(1 − s/k) q^n + (s/k) q^{n+1,*}`` and ΔN summed over the sub-steps;
     4. synchronisation (eq. 12 and its multi-dimensional form): covered cells take
        ``q_I = N_I / V_c``; each uncovered ring cell drops the SPDE fluxes it exchanged with covered
        face neighbours (set S1) and takes the particle crossings (set S2),
@@ -70,10 +72,12 @@ class HybridSolver:
     step), never on its slot. With a fixed region and periodic or Neumann walls, the total number
     of particles (SPDE mass plus particles) is conserved to round-off.
 
-    Regridding (every ``regrid_interval`` steps and at the start; 0 keeps the first region):
-    :func:`regrid.region` per member; particles in cells that stay covered are kept, cells that
-    leave the region keep their count as density, newly covered cells are sampled from the SPDE
-    (the only step that changes the total; logged in ``regrids``).
+    Regridding (every ``regrid_interval`` steps, at the start, and on demand for a member that
+    starts a step with an uncovered cell below the threshold; 0 keeps the first region): tag,
+    buffer and Berger–Rigoutsos per member; particles in cells that stay covered are kept, cells
+    that leave the region keep their count as density, newly covered cells are sampled from the
+    SPDE (the only step that changes the total; logged in ``regrids``). At the start the state is
+    the piecewise-constant initial condition, so those particles lie uniformly in their cells.
     """
 
     def __init__(self, spde: SPDESolver, params: regrid.RegridParams, regrid_interval: int, seed: int,
@@ -104,7 +108,6 @@ class HybridSolver:
         self.count = ti.field(ti.i32, shape=(E, *n))  # particles ending the walk in each covered cell
         self.dN = ti.field(ti.i32, shape=(E, *n))  # ΔN: net particles the region gave each uncovered cell
         self.n_real = ti.field(ti.i32, shape=E)  # particles of each member between steps
-        self.low = ti.field(ti.i32, shape=E)  # uncovered cells below the regrid floor, per member
         self.need = ti.field(ti.i32, shape=())  # most slots a member asked for (TOO_MANY: a cell overflowed)
         self.clamped = ti.field(ti.i64, shape=())  # axis steps clamped to ±Δx in the last walk
         self.p_inflow = ti.field(ti.i64, shape=())  # particles injected minus absorbed at Dirichlet sides
@@ -132,8 +135,8 @@ class HybridSolver:
             t = _clock()
             if n % self.regrid_interval == 0:
                 self.regrid(n)
-            elif self._count_low(FLOOR * self.params.threshold):
-                self.regrid(n, np.flatnonzero(self.low.to_numpy()))
+            elif self._count_low(self.params.threshold):  # tagging's promise, kept at every step
+                self.extend(n)
             self.timing["regrid"] += _clock() - t
         t0 = _clock()
         if self.n_cover == 0:  # no particle region: a plain SPDE step
@@ -180,34 +183,51 @@ class HybridSolver:
             self._grow(2 * need)
             self._drop_ghosts(self.pool, self.cur)
 
-    def regrid(self, n: int, members: np.ndarray | None = None) -> None:
-        """New region from the SPDE density at step ``n`` (tag, buffer, Berger–Rigoutsos) for
-        ``members`` (all by default; the others keep theirs).
-
-        Besides every ``regrid_interval`` steps, a member is regridded on demand before any step
-        that it starts with an uncovered cell below ``FLOOR · threshold`` particles. This is what keeps the
-        composite solution positive: FV itself goes negative at low density, and a ghost cell
-        holding ``λ = ℓ + α`` particles gives ``ℓ + 1`` ghosts with probability α, all of which may
-        walk in; neither can happen at a few particles per cell. (Seen before: an uncovered cell
-        next to the region in sphere3d went negative between two scheduled regrids.)
-        """
+    def regrid(self, n: int) -> None:
+        """New region from the SPDE density at step ``n`` (tag, buffer, Berger–Rigoutsos)."""
         ppc = self.spde.density() * self.grid.cell_volume
         tags = regrid.grow(regrid.tag(ppc, self.params.threshold), self.params.buffer, (None, *self.periodic))
-        masks = self.region()
+        masks = np.zeros(ppc.shape, dtype=bool)
         cache: dict[bytes, tuple] = {}  # members with the same tags get the same boxes
-        for e in range(self.ensemble) if members is None else members:
+        for e in range(self.ensemble):
             k = tags[e].tobytes()
             if k not in cache:
                 cache[k] = regrid.cluster(tags[e], self.params)
             self.boxes[e] = cache[k]
             masks[e] = regrid.mask(self.boxes[e], self.n)
-        n_boxes, tagged = sum(len(b) for b in self.boxes), int(tags.sum())
         self.set_region(masks, n, ppc)
-        covered = int(masks.sum())
-        self.regrids.append({"step": n, "boxes": n_boxes, "covered_cells": covered,
+        self._log(n, int(tags.sum()), 0)
+
+    def extend(self, n: int) -> None:
+        """Cover, before step ``n``, every uncovered cell below the threshold (grown by the buffer,
+        clustered by Berger–Rigoutsos) and keep the rest of the region: the on-demand regrid.
+
+        Between scheduled regrids the density of an uncovered cell can fall below the threshold;
+        then neither FV (negative at a few particles per cell) nor the ghost fill (a cell holding
+        ``ℓ + α`` particles sends ``ℓ + 1`` ghosts with probability α, which can all walk in) keeps
+        it positive. This keeps what tagging promises at every step, so the composite solution
+        stays positive. (Seen before: an uncovered cell next to the region in sphere3d went
+        negative between two scheduled regrids; with ghosts from cells at ~3 particles, a
+        200-member ellipse2d ensemble had 2 negative cells.)
+        """
+        ppc = self.spde.density() * self.grid.cell_volume
+        masks = self.region()
+        low = regrid.tag(ppc, self.params.threshold) & ~masks
+        add = regrid.grow(low, self.params.buffer, (None, *self.periodic))
+        members = np.flatnonzero(low.reshape(self.ensemble, -1).any(axis=1))
+        for e in members:
+            boxes = regrid.cluster(add[e], self.params)
+            self.boxes[e] = list(self.boxes[e]) + boxes
+            masks[e] |= regrid.mask(boxes, self.n)
+        self.set_region(masks, n, ppc)
+        self._log(n, int(regrid.tag(ppc, self.params.threshold).sum()), len(members))
+
+    def _log(self, n: int, tagged: int, on_demand: int) -> None:
+        covered = self.n_cover
+        self.regrids.append({"step": n, "boxes": sum(len(b) for b in self.boxes), "covered_cells": covered,
                              "efficiency": tagged / covered if covered else 1.0,
                              "created": int(self.created[None]), "removed": float(self.removed[None]),
-                             "on_demand": 0 if members is None else len(members)})
+                             "on_demand": on_demand})
 
     def set_region(self, masks: np.ndarray, n: int, ppc: np.ndarray | None = None) -> None:
         """Make ``masks`` (``(ensemble, *cells)`` booleans) the particle region at step ``n``."""
@@ -507,14 +527,11 @@ class HybridSolver:
 
     @ti.kernel
     def _count_low(self, floor: ti.f64) -> ti.i32:
-        """Uncovered cells holding fewer than ``floor`` particles: per member in ``low``, and in all."""
+        """Uncovered cells (over all members) holding fewer than ``floor`` particles."""
         vol = ti.static(self.grid.cell_volume)
-        for e in self.low:
-            self.low[e] = 0
         total = 0
         for J in ti.grouped(self.covered):
             if not self.covered[J] and ti.cast(self.spde.q[J], ti.f64) * vol < floor:
-                self.low[J[0]] += 1
                 total += 1
         return total
 
