@@ -7,7 +7,7 @@ from ti_dk import load_scene, run, theory
 from ti_dk.regrid import mask
 from ti_dk.sim import make_solver
 
-from .test_particles import _as_counts, _check
+from .helpers import as_counts, check_moments
 
 
 def _solver(scene):
@@ -119,7 +119,7 @@ def test_void_hybrid_is_poisson_binomial_where_spdes_are_not():
     cells = (mean > 0.5) & (mean < 5)  # low density, inside the particle region
     assert cells.sum() >= 10
     exact, se = theory.void_reference(ppc0, 1.0, t, members, cells)
-    _check(_as_counts(hyb.stats, -1, hyb.cell_volume), exact, se, cells)
+    check_moments(as_counts(hyb.stats, -1, hyb.cell_volume), exact, se, cells)
     # the Gaussian SPDE has no skewness: far off the exact value in these cells
-    z = (_as_counts(gau.stats, -1, gau.cell_volume)["skewness"] - exact["skewness"]) / se["skewness"]
+    z = (as_counts(gau.stats, -1, gau.cell_volume)["skewness"] - exact["skewness"]) / se["skewness"]
     assert np.median(np.abs(z[cells])) > 10
