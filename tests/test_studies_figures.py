@@ -2,6 +2,7 @@
 import h5py
 import matplotlib
 import numpy as np
+import pytest
 
 from studies import figures
 from ti_dk import theory
@@ -12,6 +13,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
 
+@pytest.mark.slow  # statistical: 6 equilibrium runs (~15 s)
 def test_fig2_pdfs(tmp_path):
     data = figures.fig2(10, tmp_path, plt)
     assert (tmp_path / "fig2.png").stat().st_size > 10_000
@@ -27,6 +29,7 @@ def test_fig2_pdfs(tmp_path):
         assert data[f"ppc{ppc}/gaussian"][1][k < 0].sum() > 0.003  # the Gaussian SPDE goes negative
 
 
+@pytest.mark.slow  # statistical: 9 equilibrium runs (~25 s)
 def test_fig3_reproduces_the_papers_findings(tmp_path):
     data = figures.fig3(20, tmp_path, plt, ppcs=(1, 5, 50))
     exact = {p: theory.binomial_moments(100 * p, 0.01) for p in (1, 5, 50)}

@@ -3,6 +3,7 @@ import json
 
 import h5py
 import numpy as np
+import pytest
 
 from studies import tradeoff
 from ti_dk import load_scene, run
@@ -16,6 +17,7 @@ def test_pareto_front():
     assert tradeoff.pareto(cost, err).tolist() == [True, True, True, False, False]
 
 
+@pytest.mark.slow  # statistical: 600-member void1d runs (~10 s)
 def test_errors_are_one_for_the_exact_method_and_not_for_the_gaussian():
     common = dict(ensemble=600, t_end=0.0025, output_times=[0.0025])
     part = run(load_scene("void1d", method="particle", **common))
