@@ -108,6 +108,7 @@ def test_box_layout_does_not_matter_and_shared_ghosts_are_sampled_once():
     assert np.array_equal(final[0], final[1])
 
 
+@pytest.mark.slow  # statistical: thousands of members against the exact counts
 def test_void_hybrid_is_poisson_binomial_where_spdes_are_not():
     members = 2000
     common = dict(ensemble=members, t_end=0.0025, output_times=[0.0025])

@@ -10,6 +10,7 @@ from ti_dk.particles import ParticleSolver
 
 from .helpers import KEYS, as_counts, check_moments
 
+@pytest.mark.slow  # statistical: thousands of members against the exact counts
 def test_equilibrium_counts_are_binomial():
     scene = load_scene("equilibrium1d", method="particle", particle_init="exact_uniform", ppc=5, ensemble=3000,
                        t_equil=None, t_end=0.002, output_times=[0.0, 0.002], histogram=None)
@@ -25,6 +26,7 @@ def test_equilibrium_counts_are_binomial():
     assert res.diagnostics["mass"][-1] == N * scene.ensemble
 
 
+@pytest.mark.slow  # statistical: thousands of members against the exact counts
 def test_void_counts_are_poisson_binomial():
     scene = load_scene("void1d", method="particle", ensemble=1500, t_end=0.0025, output_times=[0.0005, 0.0025])
     res = run(scene)
