@@ -167,8 +167,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--ensemble", type=int, default=2000, help="void1d members")
     p.add_argument("--t-end", type=float, default=0.0025, help="void1d end time")
     p.add_argument("--cells", type=int, default=64, help="ellipse2d cells per axis")
-    p.add_argument("--ellipse-t-end", type=float,
-                   help=f"ellipse2d end time (default: the scene's output time number {ELLIPSE_OUTPUT + 1})")
+    p.add_argument("--ellipse-t-end", type=float, default=ti_dk.load_scene("ellipse2d").output_times[ELLIPSE_OUTPUT],
+                   help=f"ellipse2d end time: the scene's output time number {ELLIPSE_OUTPUT + 1}")
     p.add_argument("--only", nargs="+", metavar="SETTING", help="run only these settings (labels as in the table)")
     p.add_argument("--rerun", action="store_true", help="run every setting again, even where its .h5 is there")
     p.add_argument("--out", default="renders/tradeoff")
@@ -186,7 +186,7 @@ def main(argv: list[str] | None = None) -> int:
     ti_dk.init("cpu")
     out.mkdir(parents=True, exist_ok=True)
     base = {"ensemble": args.ensemble, "t_end": args.t_end, "output_times": [args.t_end]}
-    t_ell = args.ellipse_t_end or runs.scene("ellipse2d").output_times[ELLIPSE_OUTPUT]
+    t_ell = args.ellipse_t_end
     ell_base = {"cells": [args.cells, args.cells], "compare": "none", "t_end": t_ell, "output_times": [t_ell]}
     try:
         void = sweep(runs, "void1d", void_s, base, void_error)
