@@ -11,7 +11,6 @@ from ti_dk.regrid import mask
 from ti_dk.sim import make_solver
 
 
-
 def _solver(scene):
     return make_solver(scene, scene.initial_ppc)
 
@@ -165,6 +164,7 @@ def test_interface_is_exact_in_mean_and_variance():
     assert abs(n.var(ddof=1) - k2) / np.sqrt((k4 + 2 * k2**2) / n.size) < 3.5
 
 
+@pytest.mark.slow  # 2·10⁴ members
 def test_ghost_tilts_from_the_member_feed_back_its_fluctuation():
     # the old 'linear' rule reads the covered neighbour's count: the first covered cells' variance
     # is ~8 % high, which 'mean' (the rule above) does not show at the same seed and size
@@ -190,6 +190,7 @@ def test_void_2d_against_the_product_of_clamped_walks():
     assert np.abs(z_var).max() < 4 and abs(z_mean.mean()) < 1
 
 
+@pytest.mark.slow  # 2 × 10⁴ members
 @pytest.mark.parametrize("substeps,close", [(4, True), (1, False)])
 def test_particle_substeps_remove_the_clamp_bias(substeps, close):
     # at C = 1/4 one step is clamped with p = 0.046: k = 1 is slower than Brownian motion, k = 4
@@ -208,6 +209,7 @@ def test_particle_substeps_remove_the_clamp_bias(substeps, close):
     assert close or z_brown.mean() < -3
 
 
+@pytest.mark.slow  # 200 members, 88 steps with regrids
 def test_composite_stays_positive_with_regridding():
     # 200 members of a small ellipse2d: without the on-demand regrid, uncovered cells next to the
     # region drift below a particle between scheduled regrids and can go negative

@@ -1,9 +1,19 @@
-"""openPMD snapshots read back by a third-party reader (openPMD-viewer)."""
+"""openPMD snapshots read back by a third-party reader (openPMD-viewer); the recorded version."""
+import json
+import sys
+from pathlib import Path
+
 import h5py
 import numpy as np
 from openpmd_viewer import OpenPMDTimeSeries
 
+import ti_dk
 from ti_dk import load_scene, run
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover - Python 3.10
+    import tomli as tomllib
 
 
 def test_openpmd_round_trip(tmp_path):
@@ -29,7 +39,16 @@ def test_openpmd_round_trip(tmp_path):
     with h5py.File(tmp_path / "ellipse2d_hybrid_openpmd" / f"data{scene.n_steps:06d}.h5") as f:
         boxes = f["ti_dk/boxes"][:]  # outside the openPMD base path
         assert f.attrs["openPMD"] == b"1.1.0"
+        assert f.attrs["softwareVersion"].decode() == ti_dk.__version__
     covered = np.zeros(scene.cells, dtype=int)
     for lo0, lo1, hi0, hi1 in boxes:
         covered[lo0:hi0, lo1:hi1] += 1
     assert np.array_equal(covered, region)
+
+
+def test_version_is_the_one_in_pyproject(tmp_path):
+    pyproject = tomllib.loads((Path(__file__).resolve().parent.parent / "pyproject.toml").read_text())
+    assert ti_dk.__version__ == pyproject["project"]["version"]
+    res = run(load_scene("void1d", ensemble=2, t_end=0.0001), out=tmp_path)
+    with h5py.File(res.path) as f:
+        assert json.loads(f.attrs["versions"])["ti_dk"] == ti_dk.__version__

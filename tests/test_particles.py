@@ -8,21 +8,9 @@ from ti_dk import load_scene, run, theory
 from ti_dk.grid import Grid
 from ti_dk.particles import ParticleSolver
 
-KEYS = ("mean", "variance", "skewness", "kurtosis")
+from .helpers import KEYS, as_counts, check_moments
 
-
-def _check(counts_stats, exact, se, cells, z_max=5.0):
-    for k in KEYS:
-        z = (counts_stats[k][cells] - exact[k][cells]) / se[k][cells]
-        assert np.all(np.abs(z) < z_max), (k, z.max(), z.min())
-        assert abs(z.mean()) < z_max / np.sqrt(z.size) + 0.1, (k, z.mean())
-
-
-def _as_counts(stats, row, vol):
-    return {"mean": stats.mean[row] * vol, "variance": stats.variance[row] * vol**2,
-            "skewness": stats.skewness[row], "kurtosis": stats.kurtosis[row]}
-
-
+@pytest.mark.slow  # statistical: thousands of members against the exact counts
 def test_equilibrium_counts_are_binomial():
     scene = load_scene("equilibrium1d", method="particle", particle_init="exact_uniform", ppc=5, ensemble=3000,
                        t_equil=None, t_end=0.002, output_times=[0.0, 0.002], histogram=None)
@@ -34,10 +22,11 @@ def test_equilibrium_counts_are_binomial():
     exact = {k: np.full(M, b[k]) for k in KEYS}
     ses = {k: np.full(M, se[k]) for k in KEYS}
     for row in range(2):
-        _check(_as_counts(res.stats, row, res.cell_volume), exact, ses, slice(None))
+        check_moments(as_counts(res.stats, row, res.cell_volume), exact, ses, slice(None))
     assert res.diagnostics["mass"][-1] == N * scene.ensemble
 
 
+@pytest.mark.slow  # statistical: thousands of members against the exact counts
 def test_void_counts_are_poisson_binomial():
     scene = load_scene("void1d", method="particle", ensemble=1500, t_end=0.0025, output_times=[0.0005, 0.0025])
     res = run(scene)
@@ -53,7 +42,7 @@ def test_void_counts_are_poisson_binomial():
         # the PMF route and the cumulant route to the exact moments agree
         assert np.allclose([(np.arange(len(p)) * p).sum() for p in pmfs], exact["mean"])
         assert (exact["mean"][cells] < 5).any()
-        _check(_as_counts(res.stats, row, res.cell_volume), exact, se, cells)
+        check_moments(as_counts(res.stats, row, res.cell_volume), exact, se, cells)
 
 
 def test_walk_is_reproducible_and_seeded():

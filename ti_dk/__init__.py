@@ -2,9 +2,10 @@
 
 Importing ti_dk never starts Taichi; :func:`run` does (CPU unless told), or call :func:`init`.
 """
-__version__ = "0.1.0"
+from .config import ConfigError, Scene, available_scenes, load_scene
+from .io import package_version
+from .sim import Result, SimulationError, init, run
 
-from .config import ConfigError, Scene, available_scenes, load_scene  # noqa: E402
-from .sim import Result, SimulationError, init, run  # noqa: E402
+__version__ = package_version()  # from pyproject.toml, through the installed metadata
 
 __all__ = ["ConfigError", "Result", "Scene", "SimulationError", "available_scenes", "init", "load_scene", "run"]

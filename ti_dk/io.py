@@ -5,6 +5,7 @@ import json
 import platform
 import time
 from contextlib import contextmanager
+from importlib import metadata
 from pathlib import Path
 
 import h5py
@@ -13,12 +14,18 @@ import numpy as np
 STAT_KEYS = ("mean", "variance", "skewness", "kurtosis")
 
 
+def package_version() -> str:
+    """ti_dk's version from its installed metadata (pyproject.toml), without importing the package root."""
+    try:
+        return metadata.version("ti_dk")
+    except metadata.PackageNotFoundError:  # a source tree that was never pip-installed
+        return "unknown"
+
+
 def versions() -> dict[str, str]:
     import taichi
 
-    from . import __version__
-
-    return {"ti_dk": __version__, "taichi": ".".join(map(str, taichi.__version__)), "numpy": np.__version__,
+    return {"ti_dk": package_version(), "taichi": ".".join(map(str, taichi.__version__)), "numpy": np.__version__,
             "h5py": h5py.__version__, "python": platform.python_version()}
 
 
@@ -163,8 +170,6 @@ def write_openpmd(directory: Path, iteration: int, t: float, dt: float, grid, de
     the box list as ``/ti_dk/boxes`` (rows: lo..., hi... in cells), outside the base path.
     Written to a temporary name and renamed, so a snapshot on disk is always whole.
     """
-    from . import __version__
-
     directory.mkdir(parents=True, exist_ok=True)
     path = directory / f"data{iteration:06d}.h5"
     d = grid.dim
@@ -174,7 +179,7 @@ def write_openpmd(directory: Path, iteration: int, t: float, dt: float, grid, de
         a["openPMD"], a["openPMDextension"] = _b("1.1.0"), np.uint32(0)
         a["basePath"], a["meshesPath"], a["particlesPath"] = _b("/data/%T/"), _b("meshes/"), _b("particles/")
         a["iterationEncoding"], a["iterationFormat"] = _b("fileBased"), _b("data%06T.h5")
-        a["software"], a["softwareVersion"] = _b("ti_dk"), _b(__version__)
+        a["software"], a["softwareVersion"] = _b("ti_dk"), _b(package_version())
         a["date"] = _b(time.strftime("%Y-%m-%d %H:%M:%S %z"))
         it = f.create_group(f"data/{iteration}")
         it.attrs["time"], it.attrs["dt"], it.attrs["timeUnitSI"] = float(t), float(dt), 1.0

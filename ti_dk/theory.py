@@ -193,7 +193,7 @@ def sampling_se(pmf: np.ndarray, members: int, replicas: int = 400, seed: int = 
 def void_reference(ppc0: np.ndarray, length: float, dt: float, steps: int, members: int, cells: np.ndarray,
                    replicas: int = 200) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
     """The exact per-cell moments of particle counts after ``steps`` clamped steps from the initial
-    counts ``ppc0`` (periodic 1D, :func:`particle_counts_periodic1d`), and the sampling standard
+    counts ``ppc0`` (periodic 1D, :func:`particle_counts_periodic`), and the sampling standard
     errors of an ensemble of ``members`` in the ``cells`` asked for (NaN elsewhere)."""
     exact = particle_counts_periodic(ppc0, length, dt, steps)
     p, repeats = _particles(cell_transition(len(ppc0), length, dt, steps), ppc0)

@@ -6,7 +6,7 @@ out=$(mktemp -d)
 $py -m ti_dk.scene ellipse2d --out "$out" --no-snapshots
 $py -m ti_dk.scene sphere3d --out "$out" --no-snapshots
 $py -m ti_dk.scene ellipse2d --quick --movie --set movie_frames=12 --out "$out/quick" --no-snapshots
-for fig in fig2 fig3 fig4; do $py -m ti_dk.figures $fig --out "$out/figures"; done  # fig4: ~20 min
+for fig in fig2 fig3 fig4; do $py -m studies.figures $fig --out "$out/figures"; done  # fig4: ~20 min
 cp "$out/figures/fig2.png" renders/gallery/fig2_pdfs.png
 cp "$out/figures/fig3.png" renders/gallery/fig3_equilibrium.png
 cp "$out/figures/fig4.png" renders/gallery/fig4_void1d.png

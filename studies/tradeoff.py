@@ -1,10 +1,13 @@
-"""``python -m ti_dk.tradeoff``: what accuracy each setting buys, and at what cost.
+"""``python -m studies.tradeoff``: what accuracy each setting buys, and at what cost.
 
 Sweeps method, hybrid threshold, buffer width, C (Δt) and precision on ``void1d`` (an ensemble,
 against the exact Poisson-binomial particle answer) and on a reduced ``ellipse2d`` (one member,
 against the exact particle mean and variance of every cell). For each setting it records the
 wall time, the error, the negative cells, and marks the Pareto front (no other setting is both
-faster and more accurate). Writes ``OUT/tradeoff.png``, ``OUT/tradeoff.h5`` and a Markdown table.
+faster and more accurate). Each setting is run through :func:`ti_dk.run` into
+``OUT/runs/<scene>/<setting>/<scene>_<method>.h5`` (a complete file for the same scene is read
+instead of run again; its wall time is the one recorded) and scored from that file. Writes
+``OUT/tradeoff.png``, ``OUT/tradeoff.h5`` and a Markdown table.
 
 Error on ``void1d``, for each statistic k of the per-cell counts (mean, variance, skewness,
 kurtosis) over the low-density cells L (exact mean between 0.5 and 10 particles):
@@ -17,17 +20,21 @@ mean_i (q_i − m_i)² / v_i, which is 1 for a correct realisation; the error is
 """
 import argparse
 import json
+import re
 import sys
-import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import h5py
 import numpy as np
 
-from . import config, sim, theory
+import ti_dk
+from ti_dk import theory
+
+from .runs import Run, Runs
 
 KEYS = ("mean", "variance", "skewness", "kurtosis")
+ELLIPSE_OUTPUT = 2  # ellipse2d's output time scored by default: its third, t = 0.00096 (the README's frame)
 
 
 @dataclass
@@ -53,11 +60,19 @@ def void_settings() -> list[Setting]:
     return s
 
 
-def void_error(res: sim.Result, members: int, t: float) -> dict[str, float]:
-    ppc0 = res.scene.initial_ppc.round()
-    mean = theory.particle_counts_periodic1d(ppc0, 1.0, t)["mean"]
+def ellipse_settings() -> list[Setting]:
+    s = [Setting("fv", {"method": "fv"}), Setting("gaussian", {"method": "gaussian"}),
+         Setting("particle", {"method": "particle"})]
+    return s + [Setting(f"hybrid threshold {t:g}", {"method": "hybrid", "threshold": t}) for t in (1, 2, 5, 10, 20)]
+
+
+def void_error(res: Run | ti_dk.Result) -> dict[str, float]:
+    """Per-moment RMS z over the low-density cells at the last output time, and their worst."""
+    sc, t = res.scene, res.times[-1]
+    ppc0, steps = sc.initial_ppc, round(t / sc.dt)
+    mean = theory.particle_counts_periodic(ppc0, sc.lengths, sc.dt, steps)["mean"]
     cells = (mean > 0.5) & (mean < 10)
-    exact, se = theory.void_reference(ppc0, 1.0, t, members, cells, replicas=100)
+    exact, se = theory.void_reference(ppc0, sc.lengths[0], sc.dt, steps, sc.ensemble, cells, replicas=100)
     vol = res.cell_volume
     est = {"mean": res.stats.mean[-1] * vol, "variance": res.stats.variance[-1] * vol**2,
            "skewness": res.stats.skewness[-1], "kurtosis": res.stats.kurtosis[-1]}
@@ -66,15 +81,12 @@ def void_error(res: sim.Result, members: int, t: float) -> dict[str, float]:
     return err
 
 
-def ellipse_error(res: sim.Result, t: float) -> dict[str, float]:
-    sc = res.scene
-    ppc0 = sc.initial_ppc.round()
-    Px, Py = (theory.cell_transition(n, L, t) for n, L in zip(sc.cells, sc.lengths))
-    # exact per cell: a particle from cell (a, b) lands in (i, j) with probability Px[a, i] Py[b, j]
-    m = Px.T @ ppc0 @ Py
-    v = m - (Px.T**2) @ ppc0 @ (Py**2)  # Σ n_ab p(1 − p): Poisson-binomial variance
-    q = res.final_density[0] * sc.cell_volume
-    chi2 = float(np.mean((q - m) ** 2 / v))
+def ellipse_error(res: Run | ti_dk.Result) -> dict[str, float]:
+    """χ² per cell of a one-member run's last row against the exact particle mean and variance."""
+    sc, t = res.scene, res.times[-1]
+    exact = theory.particle_counts_periodic(sc.initial_ppc, sc.lengths, sc.dt, round(t / sc.dt))
+    q = res.stats.mean[-1] * sc.cell_volume  # one member: the mean is its density
+    chi2 = float(np.mean((q - exact["mean"]) ** 2 / exact["variance"]))
     return {"chi2": chi2, "error": abs(chi2 - 1.0)}
 
 
@@ -83,13 +95,12 @@ def pareto(cost: np.ndarray, err: np.ndarray) -> np.ndarray:
     return np.array([not np.any((cost <= c) & (err <= e) & ((cost < c) | (err < e))) for c, e in zip(cost, err)])
 
 
-def sweep(scene_name: str, settings: list[Setting], base: dict, error, progress=True) -> list[dict]:
+def sweep(runs: Runs, scene_name: str, settings: list[Setting], base: dict, error, progress=True) -> list[dict]:
     rows = []
     for s in settings:
-        scene = config.load_scene(scene_name, **base | s.overrides)
-        t0 = time.perf_counter()
-        res = sim.run(scene, progress=False)
-        wall = time.perf_counter() - t0
+        tag = re.sub(r"[^\w.=-]+", "_", s.label)  # the label as a directory name
+        res = runs.get(f"{scene_name}/{tag}", scene_name, **base | s.overrides)
+        wall = res.wall_time
         row = {"setting": s.label, "wall_time": wall, "negative_cells": int(res.diagnostics["negative_cells"].max()),
                **error(res)}
         rows.append(row)
@@ -147,33 +158,48 @@ def plot(results: dict[str, list[dict]], out: Path) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m ti_dk.tradeoff", description=__doc__.splitlines()[0],
+    p = argparse.ArgumentParser(prog="python -m studies.tradeoff", description=__doc__.splitlines()[0],
                                 formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     p.add_argument("--ensemble", type=int, default=2000, help="void1d members")
     p.add_argument("--t-end", type=float, default=0.0025, help="void1d end time")
     p.add_argument("--cells", type=int, default=64, help="ellipse2d cells per axis")
+    p.add_argument("--ellipse-t-end", type=float, default=ti_dk.load_scene("ellipse2d").output_times[ELLIPSE_OUTPUT],
+                   help=f"ellipse2d end time: the scene's output time number {ELLIPSE_OUTPUT + 1}")
+    p.add_argument("--only", nargs="+", metavar="SETTING", help="run only these settings (labels as in the table)")
+    p.add_argument("--rerun", action="store_true", help="run every setting again, even where its .h5 is there")
     p.add_argument("--out", default="renders/tradeoff")
     args = p.parse_args(argv)
-    sim.init("cpu")
     out = Path(args.out)
+    runs = Runs(out / "runs", rerun=args.rerun)
+    void_s, ell_s = void_settings(), ellipse_settings()
+    if args.only:
+        known = {s.label for s in void_s + ell_s}
+        if unknown := [x for x in args.only if x not in known]:
+            print(f"ti_dk: error: --only {unknown[0]!r}: no such setting; use labels from "
+                  f"{', '.join(sorted(known))}", file=sys.stderr)
+            return 2
+        void_s, ell_s = ([s for s in ss if s.label in args.only] for ss in (void_s, ell_s))
+    ti_dk.init("cpu")
     out.mkdir(parents=True, exist_ok=True)
     base = {"ensemble": args.ensemble, "t_end": args.t_end, "output_times": [args.t_end]}
-    void = sweep("void1d", void_settings(), base, lambda r: void_error(r, args.ensemble, r.times[-1]))
-    ell_settings = [Setting("fv", {"method": "fv"}), Setting("gaussian", {"method": "gaussian"}),
-                    Setting("particle", {"method": "particle"})]
-    ell_settings += [Setting(f"hybrid threshold {t:g}", {"method": "hybrid", "threshold": t}) for t in (1, 2, 5, 10, 20)]
-    ell_base = {"cells": [args.cells, args.cells], "compare": "none", "t_end": 0.00096, "output_times": [0.00096]}
-    ell = sweep("ellipse2d", ell_settings, ell_base, lambda r: ellipse_error(r, r.times[-1]))
+    t_ell = args.ellipse_t_end
+    ell_base = {"cells": [args.cells, args.cells], "compare": "none", "t_end": t_ell, "output_times": [t_ell]}
+    try:
+        void = sweep(runs, "void1d", void_s, base, void_error)
+        ell = sweep(runs, "ellipse2d", ell_s, ell_base, ellipse_error)
+    except (ti_dk.ConfigError, ti_dk.SimulationError) as exc:
+        print(f"ti_dk: error: {exc}", file=sys.stderr)
+        return 2
     results = {f"void1d, {args.ensemble} members, t = {args.t_end:g}": void,
-               f"ellipse2d {args.cells}², one member, t = 0.00096": ell}
-    plot(results, out)
+               f"ellipse2d {args.cells}², one member, t = {t_ell:g}": ell}
+    plot({k: v for k, v in results.items() if v}, out)
     with h5py.File(out / "tradeoff.h5", "w") as f:
         for name, rows in (("void1d", void), ("ellipse2d", ell)):
             f.attrs[name] = json.dumps(rows)
     crit = criterion(void)
     text = (f"## void1d ({args.ensemble} members, t = {args.t_end:g})\n\n" + table(void, (*KEYS, "error"))
             + f"\nSmallest hybrid threshold within 1.5 sampling errors: {crit}\n\n"
-            + f"## ellipse2d ({args.cells}², t = 0.00096)\n\n" + table(ell, ("chi2", "error")))
+            + f"## ellipse2d ({args.cells}², t = {t_ell:g})\n\n" + table(ell, ("chi2", "error")))
     (out / "tradeoff.md").write_text(text)
     print(text)
     return 0

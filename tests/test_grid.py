@@ -1,0 +1,53 @@
+"""Grid geometry against hand-computed values, and cell_of at and around every face."""
+import numpy as np
+import pytest
+import taichi as ti
+
+from ti_dk import load_scene
+from ti_dk.grid import DIRICHLET, NEUMANN, PERIODIC, Grid, cell_of, numpy_dtype
+
+
+def test_geometry_of_an_anisotropic_2d_grid():
+    scene = load_scene("ellipse2d", cells=[4, 5], lengths=[2.0, 1.0], boundary=[["dirichlet", "neumann"], "periodic"],
+                       reservoir_ppc=[[6.0, 0.0], 0.0], method="fv", compare="none")
+    g = Grid.from_scene(scene)
+    assert g.dim == 2 and g.dx == pytest.approx((0.5, 0.2))
+    assert g.cell_volume == pytest.approx(0.1)
+    assert g.face_area == pytest.approx((0.2, 0.5))  # a face normal to x is dy long, one normal to y dx
+    assert g.boundary == ((DIRICHLET, NEUMANN), (PERIODIC, PERIODIC))
+    assert np.allclose(g.reservoir, ((60.0, 0.0), (0.0, 0.0)))  # 6 particles per cell / 0.1 volume
+    assert g.reservoir_ppc_max == pytest.approx(6.0) and g.has_dirichlet
+
+
+def test_geometry_in_1d_and_3d():
+    g1 = Grid.from_scene(load_scene("void1d", cells=[40], lengths=[2.0]))
+    assert g1.dim == 1 and g1.cell_volume == pytest.approx(0.05) and g1.face_area == pytest.approx((1.0,))
+    assert not g1.has_dirichlet and g1.reservoir_ppc_max == 0
+    g3 = Grid.from_scene(load_scene("sphere3d", cells=[2, 4, 8], lengths=[1.0, 2.0, 4.0], method="fv", compare="none"))
+    assert g3.dx == pytest.approx((0.5, 0.5, 0.5)) and g3.cell_volume == pytest.approx(0.125)
+    assert g3.face_area == pytest.approx((0.25, 0.25, 0.25))
+    assert np.prod(g3.cells) * g3.cell_volume == pytest.approx(np.prod(g3.lengths))
+
+
+def test_numpy_dtype():
+    assert numpy_dtype(ti.f32) is np.float32 and numpy_dtype(ti.f64) is np.float64
+
+
+@ti.kernel
+def _cells_of(x: ti.types.ndarray(), out: ti.types.ndarray(), h: ti.f64, n: ti.i32):
+    for i in x:
+        out[i] = cell_of(x[i], h, n)
+
+
+def test_cell_of_at_faces_and_outside():
+    n, h = 8, 0.125  # h exact in binary: x = k h is exactly on face k
+    faces = np.arange(n + 1) * h
+    x = np.concatenate([faces, np.nextafter(faces, -np.inf), faces + h / 2, [-0.3, -1e-300, 1.0 + 1e-9, 7.0]])
+    out = np.zeros(x.size, dtype=np.int32)
+    _cells_of(x, out, h, n)
+    k = np.arange(n + 1)
+    want = np.concatenate([np.minimum(k, n - 1),  # a face belongs to the cell above it; x = L to the last cell
+                           np.clip(k - 1, 0, n - 1),  # just below a face: the cell below (clamped at 0)
+                           np.minimum(k, n - 1),  # cell centres
+                           [0, 0, n - 1, n - 1]])  # outside: clamped into [0, n)
+    assert out.tolist() == want.tolist()
