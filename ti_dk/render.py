@@ -135,6 +135,7 @@ class Renderer:
         FigureCanvasAgg(self.fig)
         self.header = self.fig.text(10 / W, 1 - 8 / H, "", va="top", fontsize=11)
         self.axes, self.images, self.lines, self.row_titles = [], [], [], []
+        self.pixels = []  # per method: (left, top, width, height) of each panel in image pixels
         for r in range(self.rows):
             x = LEFT + (r * (row_w + GAP) if self.dim == 2 else 0)
             top = TOP + (0 if self.dim == 2 else r * row_h) + ROW_HEAD * (self.dim == 3) + 18
@@ -142,8 +143,10 @@ class Renderer:
                 self.row_titles.append(self.fig.text(10 / W, 1 - (top - 18 - ROW_HEAD + 4) / H, "", va="top",
                                                      fontsize=10, fontweight="bold"))
             row_axes, row_images, row_lines = [], [], []
+            self.pixels.append([])
             for k, (w, h) in enumerate(sizes):
                 ax = self.fig.add_axes((x / W, 1 - (top + h) / H, w / W, h / H))
+                self.pixels[r].append((x, top, w, h))
                 x += w + GAP
                 row_axes.append(ax)
                 if k == len(self.planes):  # the volume rendering
@@ -171,6 +174,7 @@ class Renderer:
         y0, y1 = last.get_position().y0, first.get_position().y1
         cx = (self.width - BAR + 6) / W
         cax = self.fig.add_axes((cx, y0, 14 / W, y1 - y0))
+        self.bar_pixels = (self.width - BAR + 6, round((1 - y1) * H), 14, round((y1 - y0) * H))
         sm = matplotlib.cm.ScalarMappable(self.norm, self.cmap)
         cb = self.fig.colorbar(sm, cax=cax, extend="both", extendfrac=0.04)
         cb.set_label("particles per cell (white: < 0)", fontsize=9)
@@ -242,7 +246,7 @@ class Volume:
     blob inside it as a shell of its own, and what has filled in as shells moving inwards.
     """
 
-    LEVELS, SHELL, HULL, NEGATIVE = (0.25, 0.6), 0.4, 0.15, 0.5
+    LEVELS, SHELL, HULL, NEGATIVE = (0.25, 0.6), 0.3, 0.15, 0.5
 
     def __init__(self, cells, cmap, vmax: float):
         self.cells = tuple(cells)
@@ -333,7 +337,7 @@ class FrameWriter:
         """Render ``renderer.frame(t, *content)`` to the next PNG."""
         rgb = self.renderer.frame(t, *content)
         path = self.dir / f"frame_{len(self.files):04d}.png"
-        iio.imwrite(path, rgb)
+        iio.imwrite(path, rgb, compress_level=1)  # fast deflate: a third of the time of the default, files ~1.3x
         self.files.append(path)
         return path
 

@@ -371,9 +371,10 @@ def summary(result: Result) -> str:
     main = [negative(""), *([mass] if mass else [])]
     if "particles" in d:
         where = f"{d['particles'][-1] / E:,.1f} particles{' per member' * (E > 1)} in the particle region"
-        if sc.regrid_interval == 0 and result.regrids:
-            covered = result.regrids[0]["covered_cells"] / E
-            where += f" (fixed at the start: {covered:,.0f} cells{' per member' * (E > 1)})"
+        if sc.regrid_interval == 0:
+            covered = f": {result.regrids[0]['covered_cells'] / E:,.0f} cells{' per member' * (E > 1)}" \
+                if result.regrids else ""
+            where += f" (fixed at the start{covered})"
         else:
             where += f" after {len(result.regrids):,} regrids"
         main.append(where)
@@ -384,9 +385,10 @@ def summary(result: Result) -> str:
     parts = [f"{names.get(k, k)} {v:.2f} s" for k, v in result.timing.items() if k != "total"]
     if parts:
         lines.append("time: " + ", ".join(parts) + f"; total {result.wall_time:.2f} s")
-    if result.written:
+    written = result.written or ({"statistics and diagnostics": result.path} if result.path else {})
+    if written:
         lines.append("wrote:")
-    for what, path in result.written.items():
+    for what, path in written.items():
         path = Path(path)
         if what == "frames":
             count = f"{len(result.frames)} PNG frame{'s' * (len(result.frames) != 1)}"
