@@ -237,7 +237,7 @@ class Volume:
     density.
 
     The density is first averaged over 3³ cells (so the bulk's cell-to-cell noise draws no
-    shells); each ray, sampled every half cell, composites front to back ``C += T a c``,
+    shells); each ray, sampled once per cell length, composites front to back ``C += T a c``,
     ``T ← T (1 − a)``: where it crosses one of the ``LEVELS`` (fractions of the largest initial
     density m) a shell in that level's colour of the colour bar, shaded by its normal (the
     averaged density's gradient), with opacity ``SHELL``; where it crosses the particle region's
@@ -289,7 +289,7 @@ class Volume:
                vmax: ti.f64, levels: ti.types.vector(2, ti.f64), F: ti.types.vector(3, ti.f64),
                R: ti.types.vector(3, ti.f64), U: ti.types.vector(3, ti.f64), box: ti.types.vector(3, ti.f64)):
         n = ti.Vector([vol.shape[0], vol.shape[1], vol.shape[2]])
-        h = 0.5 / ti.cast(n.max(), ti.f64)  # half a cell along the longest axis
+        h = 1.0 / ti.cast(n.max(), ti.f64)  # one cell along the longest axis
         for px, py in ti.ndrange(size, size):
             u = (px + 0.5) / size * 1.8 - 0.9
             v = 0.9 - (py + 0.5) / size * 1.8
