@@ -179,6 +179,18 @@ class Renderer:
         cb = self.fig.colorbar(sm, cax=cax, extend="both", extendfrac=0.04)
         cb.set_label("particles per cell (white: < 0)", fontsize=9)
         cax.tick_params(labelsize=8)
+        # What changes from frame to frame is drawn over a cached picture of the rest (axes, ticks,
+        # labels, colour bar): text is most of a frame's cost, and the ticks never change.
+        self.dynamic = [self.header, *self.row_titles]
+        for r in range(self.rows):
+            for k, ax in enumerate(self.axes[r]):
+                if k == len(self.planes):  # the volume panel: no ticks, redrawn whole
+                    self.dynamic.append(ax)
+                else:  # the frame lines go over the image, as in a full draw
+                    self.dynamic += [self.images[r][k], *self.lines[r][k], ax.title, *ax.spines.values()]
+        for artist in self.dynamic:
+            artist.set_animated(True)
+        self.background = None  # the static parts, rendered at the first frame
 
     def _cube_edges(self, ax, size):
         """The domain's 12 edges, faint, and the axis names, projected as the volume rendering."""
@@ -224,11 +236,22 @@ class Renderer:
                     lc.set_segments(segs)
             if self.dim == 3:
                 lv = " and ".join(f"{v:.3g}" for v in self.volume.levels)
-                self.axes[r][3].set_title(f"volume: shells at {lv} particles per cell" + (
-                    ",\nparticle region a translucent red hull" if region is not None else ""), fontsize=8.5)
+                self.axes[r][3].set_title(f"volume: shells at {lv} per cell" + (
+                    "\nparticle region: translucent red hull" if region is not None else ""), fontsize=8.5)
                 size = self.images[r][3].get_array().shape[0]
                 self.images[r][3].set_data(self.volume.render(ppc, region, size))
-        return canvas_rgb(self.fig)
+        return self._draw()
+
+    def _draw(self) -> np.ndarray:
+        canvas = self.fig.canvas
+        if self.background is None:
+            canvas.draw()  # everything but the animated artists
+            self.background = canvas.copy_from_bbox(self.fig.bbox)
+        else:
+            canvas.restore_region(self.background)
+        for artist in self.dynamic:
+            self.fig.draw_artist(artist)
+        return np.asarray(canvas.buffer_rgba())[..., :3].copy()
 
 
 @ti.data_oriented
