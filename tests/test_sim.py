@@ -174,3 +174,35 @@ def test_a_hundred_thousand_steps():
     s, mass = _steps(scene, 100_000)
     drift = np.abs(mass / mass[0] - 1).max()
     assert drift < 1e-11, drift
+
+
+def test_summary_names_every_file_every_method_and_the_time_in_step_order(tmp_path):
+    from ti_dk.sim import TIMING_ORDER, summary
+
+    scene = load_scene("ellipse2d", cells=[16, 16], t_end=0.001, output_times=[0.0, 0.001])
+    res = run(scene, out=tmp_path, movie=True, checkpoint_every=2, progress=False)
+    text = summary(res)
+    assert set(res.written) == {"statistics and diagnostics", "frames", "openPMD snapshots", "checkpoint", "movie"}
+    for path in res.written.values():
+        assert path.exists() and str(path) in text
+    neg = res.diagnostics["compare_negative_cells"]
+    assert f"fv (run alongside): negative cells {int(neg[-1]):,} at the end, at most {int(neg.max()):,}" in text
+    assert "hybrid: negative cells" in text and " regrids" in text
+    parts = [k for k in res.timing if k != "total"]
+    assert parts == [k for k in (*TIMING_ORDER, "other") if k in parts]  # in step order
+    assert {"setup", "compile", "regrid", "spde", "particles", "compare", "render", "other"} <= set(parts)
+    assert np.isclose(sum(res.timing[k] for k in parts), res.timing["total"])
+    assert res.timing["other"] > -1e-9 and res.timing["compile"] > 0
+    time_line = next(ln for ln in text.splitlines() if ln.startswith("time: "))
+    assert time_line.index("compile (first step)") < time_line.index("spde") < time_line.index("render")
+
+
+def test_summary_of_a_fixed_region_ensemble_speaks_per_member(tmp_path):
+    from ti_dk.sim import summary
+
+    res = run(load_scene("void1d", method="hybrid", ensemble=8, cells=[40], t_end=0.0005), out=tmp_path,
+              progress=False)
+    text = summary(res)
+    assert "8 members" in text and "particles per member" in text and "(all members)" in text
+    assert "fixed at the start: 22 cells per member" in text and "regrids" not in text
+    assert str(tmp_path / "void1d_hybrid_frames") in text

@@ -29,7 +29,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--quick", action="store_true", help="a seconds-long preview: a quarter of the cells per axis")
     p.add_argument("--no-frames", action="store_true", help="write no PNG frames (2D/3D scenes)")
     p.add_argument("--movie", action="store_true",
-                   help="also write movie_frames evenly spaced frames and an MP4 (GIF without imageio-ffmpeg)")
+                   help="also write movie_frames evenly spaced frames and <scene>_<method>.mp4 beside the run file")
     p.add_argument("--no-snapshots", action="store_true", help="write no openPMD snapshots (2D/3D scenes)")
     p.add_argument("--checkpoint-every", type=int, default=0, metavar="K",
                    help="write <scene>_<method>_checkpoint.h5 every K steps (0: never)")
@@ -77,16 +77,7 @@ def main(argv: list[str] | None = None) -> int:
     except Terminated:
         ckpt = " (resume with --restart and the latest checkpoint)" if args.checkpoint_every else ""
         return _fail(f"stopped by SIGTERM; the output file is marked incomplete{ckpt}", 143)
-    d = result.diagnostics
-    print(f"{scene.name}/{scene.method}: {scene.n_steps} steps of dt = {scene.dt:.4g} to t = {result.times[-1]:.4g}, "
-          f"{scene.ensemble} member(s), {result.wall_time:.2f} s; mass {d['mass'][-1]:.6g}, "
-          f"negative cells at the end {int(d['negative_cells'][-1])}"
-          + (f"; {d['particles'][-1]} particles after {len(result.regrids)} regrid(s)" if "particles" in d else "")
-          + f"; wrote {result.path}")
-    parts = ", ".join(f"{k} {v:.2f} s" for k, v in result.timing.items() if k != "total")
-    print(f"time: {parts}")
-    if result.frames:
-        print(f"frames: {len(result.frames)} in {result.frames[0].parent}")
+    print(sim.summary(result))
     return 0
 
 

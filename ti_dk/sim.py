@@ -95,6 +95,7 @@ class Result:
     regrids: list[dict] = field(default_factory=list, repr=False)  # hybrid: one record per regrid
     timing: dict[str, float] = field(default_factory=dict)  # seconds per part of the run
     frames: list[Path] = field(default_factory=list)  # PNG frames written
+    written: dict[str, Path] = field(default_factory=dict)  # every file or folder written, by what it holds
     rows: list[dict] = field(default_factory=list, repr=False)  # statistics rows with their accumulators
     chunks: dict = field(default_factory=dict)  # distributed runs: chunk count and the retried chunks
     path: Path | None = None
@@ -148,9 +149,10 @@ def run(scene: Scene, out: str | Path | None = None, progress: bool | None = Non
 
     Rows are taken at ``scene.output_steps`` over the ensemble; a stationary scene (``t_equil``
     set) pools every ``sample_every``-th step after ``t_equil`` into one row. With ``out``:
-    ``<scene>_<method>.h5`` (statistics, diagnostics), and for 2D/3D scenes by default PNG frames
-    at the output times (``frames``; ``movie`` adds ``scene.movie_frames`` evenly spaced frames
-    and an MP4 or GIF) and openPMD snapshots of member 0 (``snapshots``).
+    ``<scene>_<method>.h5`` (statistics, diagnostics), by default PNG frames at the output times
+    (``frames``: 2D/3D densities of member 0, 1D moment profiles; ``movie`` adds
+    ``scene.movie_frames`` evenly spaced frames and ``<scene>_<method>.mp4``) and, for 2D/3D
+    scenes, openPMD snapshots of member 0 (``snapshots``).
     ``checkpoint_every`` K writes ``<scene>_<method>_checkpoint.h5`` every K steps (atomically);
     ``restart`` continues from such a file, bit for bit as if never interrupted. ``member0``: the
     global index of the first member (a chunk of a larger ensemble, see :mod:`ti_dk.ensemble`).
@@ -167,9 +169,8 @@ def run(scene: Scene, out: str | Path | None = None, progress: bool | None = Non
     prog = _Progress()
     if restart is not None:
         prog = _read_checkpoint(Path(restart), scene, solver, other)
-    picture = scene.dim >= 2 and out is not None  # frames and snapshots are for 2D and 3D scenes
-    frames = picture and (frames is not False or movie)
-    snapshots = picture and snapshots is not False
+    frames = out is not None and (frames is not False or movie)
+    snapshots = out is not None and scene.dim >= 2 and snapshots is not False  # snapshots: 2D and 3D
     base = Path(out) / f"{scene.name}_{scene.method}" if out is not None else None
     hist = scene.histogram
     rf = RunFile(base.with_suffix(".h5"), scene, hist[1] - hist[0] + 1 if hist else None) if base else None
@@ -179,25 +180,26 @@ def run(scene: Scene, out: str | Path | None = None, progress: bool | None = Non
         rf.write_diagnostics(prog.diag)
     flushed = len(prog.diag["time"])
     writer = None
+    written = {"statistics and diagnostics": rf.path} if rf else {}
     if frames:
-        from .render import FrameWriter, Renderer
+        from .render import FrameWriter
 
-        writer = FrameWriter(base.parent / f"{base.name}_frames", Renderer(scene.cells, 1 + bool(other),
-                             float(ppc.max()) or 1.0), f"{scene.name}   {'x'.join(map(str, scene.cells))} cells")
+        writer = FrameWriter(base.parent / f"{base.name}_frames", _renderer(scene, ppc, other))
         writer.files = [writer.dir / f"frame_{k:04d}.png" for k in range(len(prog.frames["time"]))]
+        written["frames"] = writer.dir
     stationary = scene.t_equil is not None
     n_equil = round(scene.t_equil / scene.dt) if stationary else 0
     pooled = CellStats(scene.cells, scene.cell_volume, hist)
     if prog.pooled:
         pooled.load_state(prog.pooled)
     outputs = set(scene.output_steps)
-    frame_steps = set(scene.output_steps) | ({0} if frames else set())
-    if movie:
+    profile = scene.dim == 1  # 1D frames draw the ensemble's statistics: rows at every frame step
+    frame_steps = set(scene.output_steps) | ({0} if frames and not profile else set())
+    if movie and not stationary:
         frame_steps |= {round(k * scene.n_steps / scene.movie_frames) for k in range(scene.movie_frames + 1)}
     timing = prog.timing
-    timing.setdefault("statistics", 0.0)
-    timing.setdefault("render", 0.0)
-    timing.setdefault("io", 0.0)
+    for part in ("setup", "compile", "statistics", "render", "io"):
+        timing.setdefault(part, 0.0)
 
     def clock(part: str, t0: float) -> float:
         t1 = time.perf_counter()
@@ -212,14 +214,20 @@ def run(scene: Scene, out: str | Path | None = None, progress: bool | None = Non
             if n >= n_equil and (n - n_equil) % scene.sample_every == 0:
                 pooled.add(solver.density())
             row = pooled.row() if n == scene.n_steps else None
-        elif n in outputs:
+        elif n in outputs or (frames and profile and n in frame_steps):
             cs = CellStats(scene.cells, scene.cell_volume, hist)
             cs.add(solver.density())
             row = cs.row()
         else:
             row = None
         t0 = clock("statistics", t0)
-        if frames and n in frame_steps:
+        if frames and n in frame_steps and profile:
+            region = solver.region().mean(axis=0) if isinstance(solver, HybridSolver) else None
+            writer.write(t, row, region)
+            prog.frames["time"].append(t)
+            prog.frames["negative_cells"].append(int((solver.density() < 0).sum()))  # all members
+            t0 = clock("render", t0)
+        elif frames and n in frame_steps:
             panels = _panels(scene, solver, other)
             writer.write(t, panels)
             prog.frames["time"].append(t)
@@ -229,7 +237,7 @@ def run(scene: Scene, out: str | Path | None = None, progress: bool | None = Non
             t0 = clock("render", t0)
         if snapshots and n in outputs:
             _snapshot(base, n, scene, solver)
-        if row is not None:
+        if row is not None and n in outputs:
             prog.rows.append(row)
             prog.times.append(t)
             if rf:
@@ -240,13 +248,22 @@ def run(scene: Scene, out: str | Path | None = None, progress: bool | None = Non
 
     show = sys.stderr.isatty() if progress is None else progress
     ckpt = base.parent / f"{base.name}_checkpoint.h5" if base and checkpoint_every else None
+    if snapshots:
+        written["openPMD snapshots"] = base.parent / f"{base.name}_openpmd"
+    if ckpt:
+        written["checkpoint"] = ckpt
+    clock("setup", wall0)  # solvers built and initialised (their kernels compiled), checkpoint read
+    label = f"{scene.name}/{scene.method}"
     try:
         if restart is None:
             record(0)
         with tqdm(total=scene.n_steps, initial=prog.step, disable=not show, unit="step",
-                  desc=f"{scene.name}/{scene.method}", file=sys.stderr, mininterval=0.5) as bar:
+                  desc=f"{label}: compiling", file=sys.stderr, mininterval=0.5) as bar:
+            first = True  # the first step compiles the step kernels: timed as "compile", not in the ETA
             for n in range(prog.step, scene.n_steps):
                 t0 = time.perf_counter()
+                if first:
+                    before, t_first = _parts(timing, solver), t0
                 solver.step(n)
                 t0 = clock("solver", t0)
                 d = solver.diagnostics()
@@ -269,10 +286,20 @@ def run(scene: Scene, out: str | Path | None = None, progress: bool | None = Non
                     prog.pooled = pooled.state() if stationary else None
                     _write_checkpoint(ckpt, scene, solver, other, prog)
                     clock("io", t0)
-                bar.update()
+                if not first:
+                    bar.update()
+                else:
+                    first = False
+                    for k, v in _parts(timing, solver).items():  # move the first step into "compile"
+                        (solver.timing if k in getattr(solver, "timing", {}) else timing)[k] -= v - before.get(k, 0.0)
+                    clock("compile", t_first)
+                    bar.set_description(label, refresh=False)
+                    bar.reset()  # restart the rate and ETA clock after compilation
+                    bar.initial = bar.n = bar.last_print_n = prog.step
+                    bar.refresh()
         if movie and writer:
             t0 = time.perf_counter()
-            writer.movie()
+            written["movie"] = writer.movie(base.parent / f"{base.name}.mp4")
             clock("render", t0)
     except OverflowError as exc:
         if rf:
@@ -286,6 +313,8 @@ def run(scene: Scene, out: str | Path | None = None, progress: bool | None = Non
     if hasattr(solver, "timing"):  # the hybrid splits its step into SPDE, particles and regrid
         timing.update({k: v for k, v in solver.timing.items()})
         timing.pop("solver", None)
+    timing = {k: timing[k] for k in TIMING_ORDER if k in timing}  # the parts in step order
+    timing["other"] = wall - sum(timing.values())  # progress bar, diagnostics, closing files
     timing["total"] = wall
     regrids = getattr(solver, "regrids", [])
     if rf:
@@ -298,7 +327,78 @@ def run(scene: Scene, out: str | Path | None = None, progress: bool | None = Non
     return Result(scene=scene, times=np.array(prog.times), cell_volume=scene.cell_volume, stats=stats,
                   diagnostics={k: np.asarray(v) for k, v in prog.diag.items()}, final_density=solver.density(),
                   wall_time=wall, path=rf.path if rf else None, regrids=regrids, timing=timing,
-                  frames=list(writer.files) if writer else [], rows=prog.rows)
+                  frames=list(writer.files) if writer else [], rows=prog.rows, written=written)
+
+
+TIMING_ORDER = ("setup", "compile", "regrid", "spde", "particles", "solver", "compare", "statistics", "render", "io")
+
+
+def _parts(timing: dict, solver) -> dict[str, float]:
+    """Seconds spent so far in each part of the run, the hybrid's own parts included."""
+    return timing | getattr(solver, "timing", {})
+
+
+def _renderer(scene: Scene, ppc: np.ndarray, other):
+    """What draws this scene's frames: moment profiles in 1D, density panels in 2D and 3D."""
+    if scene.dim == 1:
+        from .profiles import ProfileRenderer
+
+        return ProfileRenderer(scene)
+    from .render import Renderer, colour_max
+
+    methods = scene.method + (f" (left) and {scene.compare} (right)" if other and scene.dim == 2 else
+                              f" (top) and {scene.compare} (bottom)" if other else "")
+    return Renderer(scene.cells, scene.lengths, 1 + bool(other), colour_max(ppc),
+                    f"{scene.name}: {methods}, {'×'.join(map(str, scene.cells))} cells, member 0")
+
+
+def summary(result: Result) -> str:
+    """The end-of-run message: what ran, every method's negative cells, where the time went (in
+    step order, compilation apart) and every file written."""
+    sc, d, E = result.scene, result.diagnostics, result.scene.ensemble
+    members = f"{E:,} member{'s' * (E != 1)}"
+    every = " (all members)" if E > 1 else ""
+    t = result.times[-1] if len(result.times) else sc.n_steps * sc.dt
+    lines = [f"{sc.name}/{sc.method}: {sc.n_steps:,} steps of dt = {sc.dt:.4g} to t = {t:.4g}, {members}, "
+             f"{result.wall_time:.1f} s"]
+    mass = f"{d['mass'][-1] / E:,.6g} particles{' per member' * (E > 1)}" if "mass" in d else None
+
+    def negative(prefix: str) -> str:
+        neg = d.get(f"{prefix}negative_cells")
+        if neg is None or not len(neg):
+            return "negative cells not recorded"
+        return f"negative cells{every} {int(neg[-1]):,} at the end, at most {int(np.max(neg)):,} in a step"
+
+    main = [negative(""), *([mass] if mass else [])]
+    if "particles" in d:
+        where = f"{d['particles'][-1] / E:,.1f} particles{' per member' * (E > 1)} in the particle region"
+        if sc.regrid_interval == 0:
+            covered = f": {result.regrids[0]['covered_cells'] / E:,.0f} cells{' per member' * (E > 1)}" \
+                if result.regrids else ""
+            where += f" (fixed at the start{covered})"
+        else:
+            where += f" after {len(result.regrids):,} regrids"
+        main.append(where)
+    lines.append(f"  {sc.method}: " + "; ".join(main))
+    if sc.compare and "compare_negative_cells" in d:
+        lines.append(f"  {sc.compare} (run alongside): {negative('compare_')}")
+    names = {"compile": "compile (first step)", "solver": sc.method}
+    parts = [f"{names.get(k, k)} {v:.2f} s" for k, v in result.timing.items() if k != "total"]
+    if parts:
+        lines.append("time: " + ", ".join(parts) + f"; total {result.wall_time:.2f} s")
+    written = result.written or ({"statistics and diagnostics": result.path} if result.path else {})
+    if written:
+        lines.append("wrote:")
+    for what, path in written.items():
+        path = Path(path)
+        if what == "frames":
+            count = f"{len(result.frames)} PNG frame{'s' * (len(result.frames) != 1)}"
+            lines.append(f"  {path}/  ({count})")
+        elif path.is_dir():
+            lines.append(f"  {path}/  ({what}: {sum(1 for _ in path.iterdir())} files)")
+        else:
+            lines.append(f"  {path}  ({what})")
+    return "\n".join(lines)
 
 
 def stats_of(rows: list[dict], hist: tuple[int, int] | None) -> Stats:
