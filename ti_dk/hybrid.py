@@ -18,6 +18,7 @@ REGRID_BIRTH = HYBRID_STEP_LIMIT  # flag in the birth word of particles sampled 
 TOO_MANY = 2**31 - 1  # `need` when a cell asked for more particles than an id can number
 # one record per regrid; on_demand: members regridded off schedule (0: a scheduled regrid of all)
 REGRID_LOG = ("step", "boxes", "covered_cells", "efficiency", "created", "removed", "on_demand")
+FLOOR = 1.0  # an uncovered cell below FLOOR · threshold particles is covered before the next step
 
 
 def _clock() -> float:
@@ -108,6 +109,8 @@ class HybridSolver:
         self.n_ring, self.n_cover = 0, 0  # lengths of the two lists
         self.count = ti.field(ti.i32, shape=(E, *n))  # particles ending the walk in each covered cell
         self.dN = ti.field(ti.i32, shape=(E, *n))  # ΔN: net particles the region gave each uncovered cell
+        self.entered = ti.field(ti.u64, shape=(E, *n))  # bit k: ghost k of this cell walked into the region
+        self.cap = ti.field(ti.i32, shape=(E, *n))  # most ghosts of this cell that may enter this sub-step
         self.n_real = ti.field(ti.i32, shape=E)  # particles of each member between steps
         self.need = ti.field(ti.i32, shape=())  # most slots a member asked for (TOO_MANY: a cell overflowed)
         self.clamped = ti.field(ti.i64, shape=())  # axis steps clamped to ±Δx in the last walk
@@ -136,7 +139,7 @@ class HybridSolver:
             t = _clock()
             if n % self.regrid_interval == 0:
                 self.regrid(n)
-            elif self._mark_low(self.params.threshold):
+            elif self._mark_low(FLOOR * self.params.threshold):
                 self.extend(n)
             self.timing["regrid"] += _clock() - t
         t0 = _clock()
@@ -155,12 +158,14 @@ class HybridSolver:
         self.spde._fluxes(n)
         self.spde._update()
         t2 = _clock()
+        self._s1(self.n_ring)
         self.clamped[None] = 0
         self.p_inflow[None] = 0
         for s in range(k):  # particle sub-steps of Δt/k; ghosts from q interpolated in time
             if s > 0:
                 self._fill_ghosts(n * k + s, s / k, 1)
             self._walk(self.pool, self.cur, n * k + s, int(s == k - 1))
+            self._cap_entries(self.pool, self.cur, n * k + s, int(s == k - 1), self.n_ring)
             self._compact(self.pool, self.cur)
             self.cur = 1 - self.cur
         self._sync(self.n_cover, self.n_ring)
@@ -566,14 +571,20 @@ class HybridSolver:
                 pool.x[cur, e, p] = y
                 pool.keep[e, p] = ti.u8(keep)
                 if keep:
-                    if last:
-                        self.count[D] += 1
+                    counted = True
                     if ghost:
                         O = self._origin(ident[0])
                         if self._inside(O):
-                            self.dN[self._member(e, O)] -= 1
+                            k = ident[0] & ti.u32((1 << self.id_bits) - 1)
+                            if k < 64:  # settled by _cap_entries
+                                ti.atomic_or(self.entered[self._member(e, O)], ti.u64(1) << ti.cast(k, ti.u64))
+                                counted = False
+                            else:
+                                self.dN[self._member(e, O)] -= 1
                         else:
                             self.p_inflow[None] += 1
+                    if last and counted:
+                        self.count[D] += 1
                 elif not ghost:
                     if alive:
                         self.dN[D] += 1
@@ -614,7 +625,9 @@ class HybridSolver:
             if i < n_cover:
                 self._take_count(self._unflatten(self.cover_list[i], ti.static(self.covered.shape)))
             else:
-                self._reflux(self._unflatten(self.ring_list[i - n_cover], ti.static(self.ring.shape)))
+                J, inside = self._ring_cell(i - n_cover)
+                if inside:
+                    self._reflux(J)
 
     @ti.func
     def _take_count(self, J):
@@ -633,30 +646,85 @@ class HybridSolver:
                         self.wall_inflow[None] -= ti.cast(self.spde.flux[self.spde._upper(J, a)][a], ti.f64) * area
 
     @ti.func
-    def _reflux(self, P):
-        """Synchronise ghost cell ``P`` (padded index), if in the domain: S1 and S2 of eq. (12)."""
-        vol = ti.static(self.grid.cell_volume)
+    def _ring_cell(self, i):
+        """The member-first index of ring cell ``i`` of ``ring_list``, and whether it is in the domain."""
+        P = self._unflatten(self.ring_list[i], ti.static(self.ring.shape))
         J = P - 1
         J[0] = P[0]
-        if self._inside(ti.Vector([J[a + 1] for a in ti.static(range(self.dim))])):
-            corr = self.real(0.0)
-            for a in ti.static(range(self.dim)):
-                u = ti.Vector.unit(self.dim + 1, a + 1, ti.i32)
-                lo, hi = J - u, J + u
-                has_lo, has_hi = J[a + 1] > 0, J[a + 1] < self.n[a] - 1
-                if ti.static(self.periodic[a]):
-                    lo[a + 1] = (lo[a + 1] + self.n[a]) % self.n[a]
-                    hi[a + 1] = hi[a + 1] % self.n[a]
-                    has_lo, has_hi = True, True
-                k = self.real(self.dt / self.grid.dx[a])
-                # S1: undo the terms ∓ Δt F / Δx_a that eq. (9) applied across faces shared with
-                # covered cells (F is positive down the axis: F = ½ Δq/Δx + noise)
-                if has_lo and self.covered[lo]:
-                    corr += k * self.spde.flux[J][a]
-                if has_hi and self.covered[hi]:
-                    corr -= k * self.spde.flux[self.spde._upper(J, a)][a]
-            self.spde.q[J] += corr + self.real(ti.cast(self.dN[J], ti.f64) / vol)  # S2
-            self.dN[J] = 0
+        return J, self._inside(ti.Vector([J[a + 1] for a in ti.static(range(self.dim))]))
+
+    @ti.kernel
+    def _s1(self, n_ring: ti.i32):
+        r"""S1 of eq. (12), before the walk: each ghost cell ``I`` drops the terms ∓ Δt F / Δx_a that
+        eq. (9) applied across its faces with covered cells, ``q_I ← q_I^{n+1,*} − Σ_{S1} F^{i→I}/V_c``,
+        so that ``q_I`` holds what the SPDE leaves in it; S2 (``ΔN_I / V_c``) is added by :meth:`_sync`."""
+        for i in range(n_ring):
+            J, inside = self._ring_cell(i)
+            if inside:
+                corr = self.real(0.0)
+                for a in ti.static(range(self.dim)):
+                    u = ti.Vector.unit(self.dim + 1, a + 1, ti.i32)
+                    lo, hi = J - u, J + u
+                    has_lo, has_hi = J[a + 1] > 0, J[a + 1] < self.n[a] - 1
+                    if ti.static(self.periodic[a]):
+                        lo[a + 1] = (lo[a + 1] + self.n[a]) % self.n[a]
+                        hi[a + 1] = hi[a + 1] % self.n[a]
+                        has_lo, has_hi = True, True
+                    k = self.real(self.dt / self.grid.dx[a])
+                    # F is positive down the axis: F = ½ Δq/Δx + noise
+                    if has_lo and self.covered[lo]:
+                        corr += k * self.spde.flux[J][a]
+                    if has_hi and self.covered[hi]:
+                        corr -= k * self.spde.flux[self.spde._upper(J, a)][a]
+                self.spde.q[J] += corr
+
+    @ti.kernel
+    def _cap_entries(self, pool: ti.template(), cur: ti.i32, step: ti.i32, last: ti.i32, n_ring: ti.i32):
+        """Let at most ``⌊q_I V_c + ΔN_I⌋`` of the ghosts of cell ``I`` enter the region in this
+        sub-step: the content the SPDE left in it (after S1) plus what the region gave it so far.
+        Without this cap a ghost cell holding ``ℓ + α`` particles, ``ℓ + 1`` ghosts of which all
+        walk in while its SPDE fluxes also carry content away, goes negative (measured: 6
+        cell-steps in the default ellipse2d run, in cells holding 5–8 particles). The ghosts
+        that enter are those of lowest index among the ones that walked in, so the result does
+        not depend on thread order; cells with more than 64 ghosts are not capped (64 ghosts all
+        walking in does not happen)."""
+        vol = ti.static(self.grid.cell_volume)
+        for i in range(n_ring):
+            J, inside = self._ring_cell(i)
+            if inside:
+                room = ti.floor(ti.cast(self.spde.q[J], ti.f64) * vol + ti.cast(self.dN[J], ti.f64))
+                cap = ti.cast(ti.max(room, 0.0), ti.i32)
+                self.cap[J] = cap
+                self.dN[J] -= ti.min(ti.cast(ti.math.popcnt(self.entered[J]), ti.i32), cap)
+        for e, p in ti.ndrange(self.ensemble, pool.capacity):
+            if p < pool.n[cur, e] and pool.keep[e, p]:
+                ident = pool.pid[cur, e, p]
+                if ident[1] == ti.u32(step + 1):
+                    O = self._origin(ident[0])
+                    k = ident[0] & ti.u32((1 << self.id_bits) - 1)
+                    if self._inside(O) and k < 64:
+                        J = self._member(e, O)
+                        below = self.entered[J] & ((ti.u64(1) << ti.cast(k, ti.u64)) - ti.u64(1))
+                        if ti.cast(ti.math.popcnt(below), ti.i32) < self.cap[J]:
+                            if last:
+                                D = ti.Vector.zero(ti.i32, self.dim + 1)
+                                D[0] = e
+                                for a in ti.static(range(self.dim)):
+                                    D[a + 1] = cell_of(pool.x[cur, e, p][a], self.real(self.grid.dx[a]), self.n[a])
+                                self.count[D] += 1
+                        else:
+                            pool.keep[e, p] = ti.u8(0)
+        for i in range(n_ring):
+            J, inside = self._ring_cell(i)
+            if inside:
+                self.entered[J] = ti.u64(0)
+
+    @ti.func
+    def _reflux(self, J):
+        """Synchronise ghost cell ``J`` (S1 was done by :meth:`_s1`): S2 of eq. (12), ``q += ΔN / V_c``."""
+        vol = ti.static(self.grid.cell_volume)
+        self.spde.q[J] += self.real(ti.cast(self.dN[J], ti.f64) / vol)
+        self.dN[J] = 0
 
     @ti.kernel
     def _regrid_apply(self, pool: ti.template(), cur: ti.i32, step: ti.i32, tilt_on: ti.i32):
