@@ -1,16 +1,116 @@
 """HDF5 record of a run: statistics rows, per-step diagnostics and provenance."""
 from __future__ import annotations
 
+import errno
+import fcntl
 import json
+import os
 import platform
+import re
 import time
 from contextlib import contextmanager
+from dataclasses import dataclass
 from pathlib import Path
 
 import h5py
 import numpy as np
 
+from .config import ConfigError
+
 STAT_KEYS = ("mean", "variance", "skewness", "kurtosis")
+
+
+class OutputError(RuntimeError):
+    """Output could not be written (disk full, permission, quota): one line, exit status 1."""
+
+
+def output_error(path: Path, exc: OSError) -> OutputError:
+    """The one-line message for an I/O failure on ``path``, saying what to change."""
+    why = {errno.ENOSPC: "the disk is full", errno.EDQUOT: "the disk quota is exceeded",
+           errno.EACCES: "permission denied", errno.EROFS: "the file system is read-only"}
+    code = exc.errno
+    if code is None:  # HDF5 reports the system error inside its message: "... errno = 28, ..."
+        found = re.search(r"errno = (\d+)", str(exc))
+        code = int(found.group(1)) if found else None
+    reason = why.get(code) or exc.strerror or str(exc).splitlines()[0]
+    return OutputError(f"cannot write {path}: {reason}; free space or use another --out")
+
+
+@dataclass(frozen=True)
+class Outputs:
+    """Every path a run writes, named once and all inside ``out``.
+
+    ``run_file`` ``<out>/<name>_<method>.h5``, ``frames`` ``…_frames/``, ``snapshots``
+    ``…_openpmd/``, ``checkpoint`` ``…_checkpoint.h5``, ``chunks`` ``…_chunks/`` (Dask) and
+    ``lock`` ``…_lock``: the file a run holds an exclusive lock on while it writes any of them.
+    """
+
+    out: Path
+    stem: str
+
+    @classmethod
+    def of(cls, out: str | Path, scene) -> "Outputs":
+        o = cls(Path(out), f"{scene.name}_{scene.method}")
+        for p in (o.run_file, o.frames, o.snapshots, o.checkpoint, o.chunks, o.lock):
+            if p.resolve().parent != o.out.resolve():  # the scene name is checked; this is the guarantee
+                raise ValueError(f"{p} would lie outside --out {out}")
+        return o
+
+    run_file = property(lambda self: self.out / f"{self.stem}.h5")
+    frames = property(lambda self: self.out / f"{self.stem}_frames")
+    snapshots = property(lambda self: self.out / f"{self.stem}_openpmd")
+    checkpoint = property(lambda self: self.out / f"{self.stem}_checkpoint.h5")
+    chunks = property(lambda self: self.out / f"{self.stem}_chunks")
+    lock = property(lambda self: self.out / f"{self.stem}.lock")
+
+    @contextmanager
+    def claim(self, overwrite: bool = False, fresh: bool = True):
+        """Hold the exclusive lock for the whole run; refuse a busy output or a complete result.
+
+        A second run on the same output is refused (:class:`ConfigError`), never allowed to touch
+        the first one's files; an existing complete result is replaced only with ``overwrite``. A
+        ``fresh`` run (not a restart) removes the frames and snapshots an earlier run left, so a
+        series never mixes two runs. The lock file stays (removing it could let two runs lock two
+        different files).
+        """
+        try:
+            self.out.mkdir(parents=True, exist_ok=True)
+            fd = os.open(self.lock, os.O_RDWR | os.O_CREAT, 0o644)
+        except OSError as exc:
+            raise ConfigError(f"--out {self.out}: cannot create it ({exc.strerror}); give a directory you can write")
+        try:
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                pid = os.pread(fd, 32, 0).decode(errors="replace").strip() or "?"
+                raise ConfigError(f"{self.run_file} is being written by another run (pid {pid}): wait for it to "
+                                "finish or give another --out") from None
+            os.ftruncate(fd, 0)
+            os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+            if not overwrite and is_complete(self.run_file):
+                raise ConfigError(f"{self.run_file} holds a complete result: add --overwrite to replace it, "
+                                "or give another --out")
+            if fresh:
+                self.clear_pictures()
+            yield self
+        finally:
+            os.close(fd)  # releases the lock
+
+    def clear_pictures(self) -> None:
+        """Remove the frames, movie and snapshots of an earlier run on this output."""
+        for folder, patterns in ((self.frames, ("frame_*.png", "movie.*")), (self.snapshots, ("data*.h5",))):
+            for pattern in patterns:
+                for p in folder.glob(pattern):
+                    p.unlink(missing_ok=True)
+
+
+def is_complete(path: Path) -> bool:
+    """Whether ``path`` is a run file marked complete (False for a missing or unreadable one)."""
+    try:
+        with h5py.File(path, "r", locking=False) as f:
+            return bool(f.attrs.get("complete", False))
+    except (OSError, ValueError):
+        return False
 
 
 def versions() -> dict[str, str]:
@@ -96,12 +196,22 @@ class RunFile:
             self.h5.flush()
 
     def close(self, wall_time: float | None = None, error: str | None = None) -> None:
-        if wall_time is not None:
-            self.h5.attrs["wall_time"] = wall_time
-        if error is not None:
-            self.h5.attrs["error"] = error
-        self.h5.attrs["complete"] = error is None
-        self.h5.close()
+        """Close the file, marked complete only without ``error``; after an I/O error, as far as the
+        file system still allows (it stays marked incomplete, as it was created)."""
+        if not self.h5.id.valid:
+            return
+        try:
+            if wall_time is not None:
+                self.h5.attrs["wall_time"] = wall_time
+            if error is not None:
+                self.h5.attrs["error"] = error
+            self.h5.attrs["complete"] = error is None
+        finally:
+            try:
+                self.h5.close()
+            except OSError:
+                if error is None:
+                    raise
 
 
 def scene_json(scene) -> str:
