@@ -1,15 +1,16 @@
 """The run controller: Taichi start-up, the time loop, statistics cadence, output and diagnostics."""
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import dataclasses
+import io
 import json
 import math
 import signal
 import sys
 import threading
 import time
-from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -59,7 +60,7 @@ class Stopped(SimulationError):
 _STOP: dict = {"signal": None}  # set by the handlers of stop_on_signals(), read between steps
 
 
-@contextmanager
+@contextlib.contextmanager
 def stop_on_signals():
     """SIGTERM and SIGINT set a flag that the run checks between steps (and after Taichi's start and
     the kernels' compilation), instead of raising wherever Python happens to be; handlers restored after."""
@@ -107,7 +108,8 @@ def init(arch: str = "cpu", threads: int | None = None) -> None:
     if arch == "cuda" and not _cuda_driver_present():
         raise ConfigError("the 'cuda' backend is not available on this machine (no CUDA driver): run with --arch cpu")
     kw = {"cpu_max_num_threads": threads} if threads else {}
-    ti.init(arch=ARCHS[arch], default_fp=ti.f64, offline_cache=True, log_level=ti.WARN, **kw)
+    with contextlib.redirect_stdout(io.StringIO()):  # ti.init prints "[Taichi] Starting on arch=..." unasked
+        ti.init(arch=ARCHS[arch], default_fp=ti.f64, offline_cache=True, log_level=ti.WARN, **kw)
     if ti.lang.impl.current_cfg().arch != ARCHS[arch]:
         raise ConfigError(f"the '{arch}' backend is not available on this machine: run with --arch cpu")
 
