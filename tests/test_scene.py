@@ -38,31 +38,186 @@ def test_same_seed_same_bits_on_one_and_two_threads(tmp_path, method):
     assert not np.array_equal(out[2, 5]["mean"], out[2, 6]["mean"])
 
 
-@pytest.mark.parametrize(
-    "args, message",
-    [
-        (["nosuchscene"], "unknown scene 'nosuchscene'"),
-        (["void1d", "--set", "cells=[0]"], "cells = 0"),
-        (["void1d", "--set", "C=2.0"], "beyond the explicit stability limit"),
-        (["void1d", "--set", "colour=red"], "unknown key 'colour'"),
-        (["void1d", "--set", "C"], "write KEY=VALUE"),
-        (["void1d", "--arch", "metal"], "backend 'metal' is not supported"),
-        (["void1d", "--arch", "cuda"], "'cuda' backend is not available"),
-    ],
-)
-def test_bad_input_exits_2_with_one_line_and_no_file(tmp_path, args, message):
+# -- hostile input: one line on stderr naming the key and what to change, no traceback, no file --
+def _files(tmp):
+    """The hostile files the table refers to as {tmp}/..."""
+    (tmp / "a_file").write_text("not a directory")
+    (tmp / "dir.toml").mkdir()
+    (tmp / "latin1.toml").write_bytes('description = "caf\xe9"\n'.encode("latin-1"))
+    (tmp / "broken.toml").write_text("cells = [64,\n")
+    (tmp / "noinit.toml").write_text("[grid]\ncells = [10]\n")
+    (tmp / "nocells.toml").write_text('[init]\nname = "uniform"\n')
+    (tmp / "strcells.toml").write_text('[grid]\ncells = "many"\n[init]\nname = "uniform"\n')
+    (tmp / "junk.h5").write_bytes(b"this is not HDF5" * 64)
+
+
+V = ["void1d"]  # a 1D scene: cheap to validate
+E = ["ellipse2d"]
+HOSTILE = [  # (argv, exit status, what the one line must say)
+    # seeds
+    (V + ["--seed", "-1"], 2, "seed = -1"),
+    (V + ["--seed", "18446744073709551616"], 2, "seed = 18446744073709551616"),
+    (V + ["--seed", "1.5"], 2, "--seed: invalid int value"),
+    # sizes, times and step counts
+    (V + ["--ensemble", "0"], 2, "ensemble = 0"),
+    (V + ["--ensemble", "-5"], 2, "ensemble = -5"),
+    (V + ["--ensemble", "1000000000"], 2, "ensemble x cells"),
+    (V + ["--ensemble", "many"], 2, "--ensemble: invalid int value"),
+    (V + ["--t-end", "-1"], 2, "t_end = -1.0"),
+    (V + ["--t-end", "0"], 2, "t_end = 0.0"),
+    (V + ["--t-end", "nan"], 2, "t_end = nan"),
+    (V + ["--t-end", "inf"], 2, "t_end = inf"),
+    (V + ["--t-end", "1e300"], 2, "steps fit the random-number counter"),
+    (V + ["--t-end", "1e-9"], 2, "shorter than one time step"),
+    (V + ["--set", "C=1e-300"], 2, "steps fit the random-number counter"),
+    (V + ["--set", "C=0"], 2, "C = 0.0"),
+    (V + ["--set", "C=-0.1"], 2, "C = -0.1"),
+    (V + ["--set", "C=2.0"], 2, "beyond the explicit stability limit"),
+    (V + ["--set", "C=abc"], 2, "C = 'abc': give a number"),
+    (V + ["--set", "C=true"], 2, "C = True: give a number"),
+    (V + ["--set", "cells=[0]"], 2, "cells = 0"),
+    (V + ["--set", "cells=[1]"], 2, "every axis needs at least 2 cells"),
+    (V + ["--set", "cells=[]"], 2, "cells has 0 entries"),
+    (V + ["--set", "cells=[4,4,4,4]"], 2, "cells has 4 entries"),
+    (V + ["--set", "cells=[32.5]"], 2, "cells = 32.5: give a whole number"),
+    (V + ["--set", "cells=abc"], 2, "cells = 'abc': give a whole number"),
+    (E + ["--set", "cells=[32]"], 2, "initial condition 'ellipses' is 2D"),
+    (E + ["--set", "cells=[32,32,32]"], 2, "initial condition 'ellipses' is 2D"),
+    (E + ["--method", "fv", "--set", "cells=[40000,40000]"], 2, "GiB"),
+    (V + ["--set", "lengths=[1e-300]"], 2, "under- or overflows"),
+    (V + ["--set", "lengths=[-1]"], 2, "lengths = -1.0"),
+    (V + ["--set", "lengths=[0]"], 2, "lengths = 0.0"),
+    (V + ["--set", "lengths=[1,1]"], 2, "lengths has 2 entries"),
+    # densities and initial conditions
+    (V + ["--set", "ppc=-5"], 2, "ppc = -5.0"),
+    (V + ["--set", "ppc=1e300"], 2, "ppc = 1e+300"),
+    (V + ["--set", "ppc=nan"], 2, "ppc = nan"),
+    (V + ["--set", "ppc=inf"], 2, "ppc = inf"),
+    (V + ["--set", "ppc=abc"], 2, "ppc = 'abc'"),
+    (V + ["--set", "ppc_outer=3"], 2, "'ppc_outer' is not a parameter"),
+    (V + ["--set", "void_lo=0.9"], 2, "void_lo = 0.9"),
+    (V + ["--set", "void_hi=2.0"], 2, "void_hi = 2.0"),
+    (V + ["--set", "reservoir_ppc=-1"], 2, "reservoir_ppc = -1.0"),
+    (V + ["--method", "particle", "--set", "ppc=1e6", "--ensemble", "100000"], 2, "GiB"),
+    # statistics
+    (["equilibrium1d", "--set", "histogram=[0,100000000]"], 2, "histogram"),
+    (V + ["--set", "histogram=[5,5]"], 2, "histogram: give [lo, hi]"),
+    (V + ["--set", "histogram=[1]"], 2, "histogram: give [lo, hi]"),
+    (["equilibrium1d", "--set", "t_equil=1"], 2, "t_equil = 1.0"),
+    (V + ["--set", "sample_every=0"], 2, "sample_every = 0"),
+    (V + ["--set", "output_times=[-1]"], 2, "output_times"),
+    (V + ["--set", "output_times=abc"], 2, "output_times = 'abc'"),
+    # choices and flags
+    (V + ["--method", "magic"], 2, "method = 'magic'"),
+    (V + ["--set", "precision=f16"], 2, "precision = 'f16'"),
+    (V + ["--set", "boundary=sticky"], 2, "boundary 'sticky' on axis 0"),
+    (V + ["--set", 'boundary=[["periodic","neumann"]]'], 2, "periodic on one side only"),
+    (V + ["--set", "compare=magic"], 2, "compare = 'magic'"),
+    (V + ["--set", "spde=particle"], 2, "spde = 'particle'"),
+    (V + ["--set", "ghost_profile=x"], 2, "ghost_profile = 'x'"),
+    (V + ["--set", "particle_init=exact_uniform"], 2, "particle_init = 'exact_uniform' needs"),
+    (V + ["--set", "allow_unstable=maybe"], 2, "allow_unstable = 'maybe'"),
+    (V + ["--set", "grid_efficiency=0"], 2, "grid_efficiency = 0.0"),
+    (V + ["--set", "grid_efficiency=1.5"], 2, "grid_efficiency = 1.5"),
+    (V + ["--set", "threshold=0"], 2, "threshold = 0.0"),
+    (V + ["--set", "min_box=2", "--set", "max_box=2"], 2, "max_box = 2"),
+    (V + ["--set", "movie_frames=0"], 2, "movie_frames = 0"),
+    (V + ["--set", "regrid_interval=-1"], 2, "regrid_interval = -1"),
+    (V + ["--set", "bogus=1"], 2, "unknown key 'bogus'"),
+    (V + ["--set", "C"], 2, "write KEY=VALUE"),
+    (V + ["--set", "=5"], 2, "write KEY=VALUE"),
+    (V + ["--frobnicate"], 2, "unrecognized arguments: --frobnicate"),
+    # paths
+    (V + ["--set", "name=../../x"], 2, "name = '../../x'"),
+    (V + ["--set", "name=/tmp/abs"], 2, "name = '/tmp/abs'"),
+    (V + ["--set", 'name=""'], 2, "name = ''"),
+    (V + ["--set", "name=.hidden"], 2, "name = '.hidden'"),
+    (V + ["--out", "{tmp}/a_file"], 2, "is a file: give a directory"),
+    (V + ["--out", "{tmp}/a_file/below"], 2, "is a file: give a directory"),
+    (["{tmp}/dir.toml"], 2, "is a directory"),
+    (["{tmp}/latin1.toml"], 2, "not UTF-8"),
+    (["{tmp}/broken.toml"], 2, "not valid TOML"),
+    (["{tmp}/noinit.toml"], 2, "names no initial condition"),
+    (["{tmp}/nocells.toml"], 2, "has no 'cells'"),
+    (["{tmp}/strcells.toml"], 2, "cells = 'many'"),
+    (["nosuchscene"], 2, "unknown scene 'nosuchscene'"),
+    (V + ["--restart", "{tmp}/missing.h5"], 2, "--restart"),
+    (V + ["--ensemble", "4", "--restart", "{tmp}/junk.h5"], 2, "not a readable checkpoint"),
+    # run options
+    (V + ["--threads", "0"], 2, "--threads = 0"),
+    (V + ["--checkpoint-every", "-1"], 2, "--checkpoint-every = -1"),
+    (V + ["--arch", "metal"], 2, "backend 'metal' is not supported"),
+    (V + ["--executor", "spark"], 2, "--executor: invalid choice"),
+    (V + ["--executor", "dask", "--workers", "0"], 2, "--workers = 0"),
+    (V + ["--executor", "dask", "--workers", "-1"], 2, "--workers = -1"),
+    (V + ["--executor", "dask", "--workers", "100000"], 2, "--workers = 100000"),
+    (V + ["--executor", "dask", "--chunk", "0"], 2, "--chunk = 0"),
+    (V + ["--executor", "dask", "--chunk", "-1"], 2, "--chunk = -1"),
+    (V + ["--chunk", "4"], 2, "--chunk is for --executor dask"),
+    (V + ["--executor", "dask", "--checkpoint-every", "5"], 2, "--checkpoint-every is for the local executor"),
+]
+
+
+def _main(argv, capsys):
+    from ti_dk.scene import main
+
+    try:
+        status = main([*argv, "--no-progress"])
+    except SystemExit as exc:  # argparse errors
+        status = exc.code
+    return status, capsys.readouterr().err
+
+
+def _no_complete_file(folder):
+    from ti_dk.io import is_complete
+
+    return not any(is_complete(p) for p in folder.rglob("*.h5")) if folder.exists() else True
+
+
+@pytest.mark.parametrize("argv, status, message", HOSTILE, ids=[" ".join(a[1:] or a) for a, _, _ in HOSTILE])
+def test_hostile_input_one_line_no_traceback_no_file(tmp_path, capsys, argv, status, message):
+    _files(tmp_path)
+    out = tmp_path / "out"
+    argv = [a.format(tmp=tmp_path) for a in argv]
+    code, err = _main([*argv, *([] if "--out" in argv else ["--out", str(out)])], capsys)
+    lines = err.splitlines()
+    assert code == status, err
+    assert len(lines) == 1 and lines[0].startswith("ti_dk: error: ") and message in lines[0], err
+    assert "Traceback" not in err
+    assert _no_complete_file(tmp_path)
+
+
+def test_hostile_table_size():
+    assert len(HOSTILE) >= 60
+
+
+@pytest.mark.parametrize("args, message", [
+    (["void1d", "--set", "cells=[0]"], "cells = 0"),
+    (["void1d", "--seed", "-3"], "seed = -3"),
+    (["void1d", "--arch", "cuda"], "'cuda' backend is not available"),
+])
+def test_bad_input_as_a_process_exits_2_with_one_line(tmp_path, args, message):
     if "cuda" in args:
-        pytest.importorskip("taichi")
         import taichi as ti
 
         if ti.lang.impl.current_cfg().arch == ti.cuda:  # pragma: no cover - only where a GPU exists
             pytest.skip("a CUDA device is present")
     r = cli(*args, "--out", str(tmp_path / "out"), cwd=tmp_path)
-    lines = [ln for ln in r.stderr.splitlines() if not ln.startswith("[Taichi]")]
     assert r.returncode == 2
-    assert lines == [lines[0]] and lines[0].startswith("ti_dk: error: ") and message in lines[0], r.stderr
-    assert "Traceback" not in r.stderr
+    assert r.stderr.splitlines() == [r.stderr.strip()] and r.stderr.startswith("ti_dk: error: ") \
+        and message in r.stderr, r.stderr
+    assert r.stdout == ""  # no Taichi banner either
     assert not (tmp_path / "out").exists() or not any((tmp_path / "out").iterdir())
+
+
+def test_help_shows_real_defaults_once():
+    r = subprocess.run([sys.executable, "-m", "ti_dk.scene", "--help"], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0 and "[Taichi]" not in r.stdout + r.stderr
+    assert "default: None" not in r.stdout and "(default: renders)" in r.stdout
+    for line in r.stdout.splitlines():
+        assert line.count("default") <= 1, line
+    assert "C                time step dt = C min(dx)^2 (a number > 0; default 0.0625)" in r.stdout
+    assert "buffer" in r.stdout and "ppc_outer" in r.stdout
 
 
 @pytest.mark.parametrize("scene, args, frames", [

@@ -601,9 +601,9 @@ def check_options(scene: Scene, *, out: str | Path | None = None, executor: str 
         raise ConfigError(f"--restart {restart}: no such checkpoint file")
     if out is not None:
         p = Path(out)
-        if p.exists() and not p.is_dir():
-            raise ConfigError(f"--out {out} is a file: give a directory")
         parent = next((q for q in (p, *p.parents) if q.exists()), None)
+        if parent is not None and not parent.is_dir():
+            raise ConfigError(f"--out {out}: {parent} is a file: give a directory")
         if parent is not None and not os.access(parent, os.W_OK | os.X_OK):
             raise ConfigError(f"--out {out}: {parent} is not writable here; give a directory you can write")
 

@@ -85,8 +85,8 @@ def main(argv: list[str] | None = None) -> int:
             config.check_options(scene, out=args.out, executor=args.executor, workers=args.workers,
                                  chunk=args.chunk, threads=args.threads, scheduler=args.scheduler,
                                  checkpoint_every=args.checkpoint_every, restart=args.restart, movie=args.movie)
-            _announce(scene)
             sim.init(args.arch, args.threads)
+            _announce(scene)
             if args.executor == "dask":
                 result = ensemble.run(scene, "dask", out=args.out, progress=not args.no_progress, chunk=args.chunk,
                                       workers=args.workers or 2, threads=args.threads or 1,
