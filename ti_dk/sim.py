@@ -473,7 +473,10 @@ def _read_checkpoint(path: Path, scene: Scene, solver, other) -> _Progress:
                 raise
             raise ConfigError(f"{damaged} ({str(exc).splitlines()[0] if str(exc) else type(exc).__name__}); "
                               "restart from another checkpoint or from the start") from None
-    problem = _checkpoint_problem(scene, prog, states, {"solver": solver, "compare": other})
+    try:
+        problem = _checkpoint_problem(scene, prog, states, {"solver": solver, "compare": other})
+    except (KeyError, IndexError, ValueError) as exc:  # a table missing or cut short
+        problem = f"{type(exc).__name__} {exc}"
     if problem:
         raise ConfigError(f"{damaged}: {problem}; restart from another checkpoint or from the start")
     solver.load_state(states["solver"])
@@ -492,6 +495,9 @@ def _checkpoint_problem(scene: Scene, prog: _Progress, states: dict, solvers: di
     shapes and types (against a fresh solver's), finite values, particles inside the domain and,
     for the hybrid, in their region, and the mass the state holds against the diagnostics."""
     step, n = prog.step, scene.n_steps
+    missing = {"time", "mass"} - set(prog.diag)
+    if missing:
+        return f"its diagnostics lack {', '.join(sorted(missing))}"
     if not 0 < step < n:
         return f"step {step} is outside 1 … {n - 1}"
     if any(len(v) != step for v in prog.diag.values()) or not math.isclose(prog.diag["time"][-1], step * scene.dt,
