@@ -36,6 +36,22 @@ def output_error(path: Path, exc: OSError) -> OutputError:
     return OutputError(f"cannot write {path}: {reason}; free space or use another --out")
 
 
+SPACE_RESERVE = 1 << 20  # bytes kept free on the output's file system (HDF5 metadata, the closing flush)
+
+
+def require_space(path: Path, nbytes: float) -> None:
+    """Raise ENOSPC *before* writing ``nbytes`` near ``path`` would leave less than ``SPACE_RESERVE``.
+
+    HDF5 cannot recover from a write that fails for want of space: its metadata cache retries the
+    flush forever and the process can crash when the file is released. Refusing the write first
+    keeps every file closable (and marked incomplete).
+    """
+    folder = path if path.is_dir() else path.parent
+    st = os.statvfs(folder)
+    if st.f_bavail * st.f_frsize < nbytes + SPACE_RESERVE:
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(path))
+
+
 @dataclass(frozen=True)
 class Outputs:
     """Every path a run writes, named once and all inside ``out``.
@@ -137,6 +153,7 @@ class RunFile:
 
     def __init__(self, path: Path, scene, histogram_bins: int | None = None):
         path.parent.mkdir(parents=True, exist_ok=True)
+        require_space(path.parent, 64 << 10)
         self.h5 = h5py.File(path, "w")
         self.path = path
         a = self.h5.attrs
@@ -173,6 +190,7 @@ class RunFile:
         ds[n:] = rows
 
     def write_row(self, t: float, row: dict[str, np.ndarray]) -> None:
+        require_space(self.path, sum(np.asarray(v).nbytes for v in row.values()))
         st = self.h5["stats"]
         self._append(st["time"], [t])
         for k, v in row.items():
@@ -181,6 +199,7 @@ class RunFile:
         self.h5.flush()
 
     def write_diagnostics(self, diag: dict[str, list]) -> None:
+        require_space(self.path, 8 * sum(len(v) for v in diag.values()))
         for k, v in diag.items():
             if k not in self.diag:
                 self._grow(self.diag, k, (), np.asarray(v).dtype if len(v) else np.float64)
@@ -190,6 +209,7 @@ class RunFile:
     def write_table(self, name: str, records: list[dict]) -> None:
         """``/name/<key>``: one dataset per key of equal-keyed records (the hybrid's regrid log)."""
         if records:
+            require_space(self.path, 8 * len(records) * len(records[0]))
             g = self.h5.create_group(name)
             for k in records[0]:
                 g.create_dataset(k, data=np.array([r[k] for r in records]))
@@ -208,7 +228,7 @@ class RunFile:
             self.h5.attrs["complete"] = error is None
         finally:
             try:
-                self.h5.close()
+                close_h5(self.h5)
             except OSError:
                 if error is None:
                     raise
@@ -249,13 +269,27 @@ def atomic_h5(path: Path):
     """An HDF5 file written under a temporary name and renamed once whole; removed if interrupted,
     so whatever carries ``path`` is always complete."""
     tmp = path.with_suffix(path.suffix + ".tmp")
+    f = h5py.File(tmp, "w")
     try:
-        with h5py.File(tmp, "w") as f:
-            yield f
+        yield f
+        close_h5(f)
     except BaseException:
+        try:
+            close_h5(f)
+        except OSError:
+            pass
         tmp.unlink(missing_ok=True)
         raise
     tmp.replace(path)
+
+
+def close_h5(f) -> None:
+    """Close an HDF5 file; a write failure while flushing (disk full) is an OSError, not h5py's
+    RuntimeError, so that callers see every I/O failure as one kind of error."""
+    try:
+        f.close()
+    except RuntimeError as exc:
+        raise OSError(str(exc)) from None
 
 
 def _b(text: str) -> np.bytes_:
@@ -277,6 +311,7 @@ def write_openpmd(directory: Path, iteration: int, t: float, dt: float, grid, de
 
     directory.mkdir(parents=True, exist_ok=True)
     path = directory / f"data{iteration:06d}.h5"
+    require_space(directory, 3 * density.nbytes + (0 if positions is None else 3 * positions.nbytes))
     d = grid.dim
     labels = [_b(a) for a in "xyz"[:d]]
     with atomic_h5(path) as f:

@@ -7,6 +7,7 @@ SIGTERM (output closed and marked incomplete).
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import warnings
 
@@ -99,7 +100,10 @@ def main(argv: list[str] | None = None) -> int:
             return _fail(str(exc))
         except sim.Stopped as exc:
             return _fail(str(exc), exc.status)
-        except (sim.SimulationError, OutputError) as exc:
+        except OutputError as exc:
+            _fail(str(exc), 1)
+            _exit_now(1)
+        except sim.SimulationError as exc:
             return _fail(str(exc), 1)
     d = result.diagnostics
     print(f"{scene.name}/{scene.method}: {scene.n_steps} steps of dt = {scene.dt:.4g} to t = {result.times[-1]:.4g}, "
@@ -125,6 +129,14 @@ def _announce(scene: config.Scene) -> None:
         print(f"ti_dk: {steps:,} steps of dt = {scene.dt:.4g} for {scene.ensemble:,} member(s) of "
               f"{'x'.join(map(str, scene.cells))} cells: about {when} on 2 CPU cores (a rough estimate)",
               file=sys.stderr)
+
+
+def _exit_now(status: int):
+    """Leave at once after an I/O failure: an HDF5 file that could not be flushed (a full disk) can
+    crash the interpreter when it is released at exit, so nothing more is released."""
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(status)
 
 
 def _fail(message: str, status: int = 2) -> int:

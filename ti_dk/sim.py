@@ -35,6 +35,7 @@ from .io import (
     write_group,
     write_openpmd,
     output_error,
+    require_space,
     write_rows,
 )
 from .particles import ParticleSolver
@@ -432,13 +433,14 @@ def _snapshot(directory: Path, n: int, scene: Scene, solver) -> None:
 
 def _write_checkpoint(path: Path, scene: Scene, solver, other, prog: _Progress) -> None:
     """Everything needed to resume at ``prog.step``; written to a temporary name, then renamed."""
+    states = {name: s.state() for name, s in (("solver", solver), ("compare", other)) if s is not None}
+    require_space(path, sum(v.nbytes for st in states.values() for v in st.values()))
     with atomic_h5(path) as f:  # interrupted (SIGTERM): the previous checkpoint stays the latest
         f.attrs["scene"] = scene_json(scene)
         f.attrs["step"] = prog.step
         f.attrs["timing"] = json.dumps(prog.timing | ({"hybrid": solver.timing} if hasattr(solver, "timing") else {}))
-        for name, s in (("solver", solver), ("compare", other)):
-            if s is not None:
-                write_group(f, name, s.state())
+        for name, st in states.items():
+            write_group(f, name, st)
         f.create_dataset("times", data=np.array(prog.times, dtype=np.float64))
         write_rows(f, prog.rows)
         write_group(f, "diag", prog.diag)
