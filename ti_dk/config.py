@@ -524,7 +524,7 @@ def memory_estimate(scene: Scene) -> dict[str, float]:
             est["fields"] += mc * (1 + scene.dim) * real
         if method == "hybrid":
             est["fields"] += mc * 32  # region, ghost ring, cell lists, counts
-            est["particles"] += 2 * 2.5 * min(scene.threshold, _ppc_max(scene)) * mc * (scene.dim * real + 8)
+            est["particles"] += 2 * 1.5 * min(scene.threshold, _ppc_max(scene)) * mc * (scene.dim * real + 8)
         if method == "particle":
             est["fields"] += mc * 4
             est["particles"] += scene.ensemble * _particles(scene) * (scene.dim * real + 8 * scene.grid.has_dirichlet)
