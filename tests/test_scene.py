@@ -363,7 +363,11 @@ def test_signals_stop_cleanly_20_trials(tmp_path, sig):
     import random
 
     rng = random.Random(sig)
-    outcomes = [_signal_trial(tmp_path / str(k), sig, rng.uniform(0.0, 6.0)) for k in range(20)]
+    outcomes = []
+    for k in range(20):
+        (tmp_path / str(k)).mkdir()
+        outcomes.append(_signal_trial(tmp_path / str(k), sig, rng.uniform(0.0, 6.0)))
+    print(signal.Signals(sig).name, {o: outcomes.count(o) for o in set(outcomes)})
     assert outcomes.count("stopped") >= 15, outcomes
 
 

@@ -95,7 +95,7 @@ class Key:
             return f"{what} in {'(' if self.above else '['}{fmt(self.lo)}, {fmt(self.hi)}]"
         if self.lo is not None:
             return f"{what} {'>' if self.above else '>='} {fmt(self.lo)}"
-        return f"a finite number" if self.kind == "real" else what
+        return "a finite number" if self.kind == "real" else what
 
     def check(self, name: str, value: Any) -> Any:
         """The value, typed; a one-line :class:`ConfigError` naming ``name`` when it does not fit."""

@@ -24,18 +24,17 @@ from .fv import SPDESolver
 from .grid import Grid
 from .hybrid import HybridSolver
 from .io import (
-    OutputError,
     Outputs,
     RunFile,
     atomic_h5,
+    output_error,
     read_group,
     read_rows,
+    require_space,
     same_scene,
     scene_json,
     write_group,
     write_openpmd,
-    output_error,
-    require_space,
     write_rows,
 )
 from .particles import ParticleSolver
