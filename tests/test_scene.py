@@ -96,7 +96,7 @@ HOSTILE = [  # (argv, exit status, what the one line must say)
     (V + ["--set", "ppc=abc"], 2, "ppc = 'abc'"),
     (V + ["--set", "ppc_outer=3"], 2, "'ppc_outer' is not a parameter"),
     (V + ["--set", "void_lo=0.9"], 2, "void_lo = 0.9"),
-    (V + ["--set", "void_hi=2.0"], 2, "void_hi = 2.0"),
+    (V + ["--set", "void_hi=-inf"], 2, "void_hi = -inf"),
     (V + ["--set", "reservoir_ppc=-1"], 2, "reservoir_ppc = -1.0"),
     (V + ["--method", "particle", "--set", "ppc=1e6", "--ensemble", "100000"], 2, "GiB"),
     # statistics
@@ -421,3 +421,14 @@ def test_a_read_only_output_is_refused_before_the_run(tmp_path, mount, capsys):
     ro = mount("ro,size=64k")
     code, err = _main(["void1d", "--out", str(ro / "out")], capsys)
     assert code == 2 and err.count("\n") == 1 and "is not writable" in err, err
+
+
+def test_long_runs_say_how_long_before_they_start(capsys):
+    from ti_dk import load_scene
+    from ti_dk.scene import _announce
+
+    _announce(load_scene("void1d", ensemble=4))  # a fraction of a second: nothing said
+    assert capsys.readouterr().err == ""
+    _announce(load_scene("void1d", ensemble=20000, t_end=1.0))
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "160,000 steps" in err and "h on 2 CPU cores" in err
