@@ -131,7 +131,7 @@ def _finished(futures):
 
     pending = set(futures)
     while pending:
-        sim.check_stop()
+        sim.check_stop(f" with {len(pending)} chunk(s) to go (the finished ones are kept for the next run)")
         try:
             done, pending = wait(pending, timeout=0.5, return_when="FIRST_COMPLETED")
         except TimeoutError:

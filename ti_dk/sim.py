@@ -7,6 +7,7 @@ import dataclasses
 import io
 import json
 import math
+import os
 import signal
 import sys
 import threading
@@ -68,6 +69,9 @@ def stop_on_signals():
         yield
         return
     def handler(signum, frame):
+        if _STOP["signal"] is not None:  # asked twice: stop at once, the default way
+            signal.signal(signum, signal.SIG_DFL)
+            os.kill(os.getpid(), signum)
         _STOP["signal"] = signum
 
     _STOP["signal"] = None
@@ -80,14 +84,13 @@ def stop_on_signals():
         _STOP["signal"] = None
 
 
-def check_stop(step: int | None = None, n_steps: int | None = None, rf=None, checkpoint: Path | None = None) -> None:
+def check_stop(where: str = " before the first step", rf=None, checkpoint: Path | None = None) -> None:
     """Raise :class:`Stopped` if a signal arrived: ``rf`` closed and marked incomplete with the reason,
     and the message names the latest checkpoint only if there is one."""
     signum = _STOP["signal"]
     if signum is None:
         return
     name = signal.Signals(signum).name
-    where = f" at step {step} of {n_steps}" if step is not None else " before the first step"
     if rf is not None:
         rf.close(error=f"stopped by {name}{where}")
     msg = f"stopped by {name}{where}"
@@ -314,7 +317,7 @@ def _run(scene: Scene, outputs_: Outputs | None, progress, arch, threads, frames
         with tqdm(total=scene.n_steps, initial=prog.step, disable=not show, unit="step",
                   desc=f"{scene.name}/{scene.method}", file=sys.stderr, mininterval=0.5) as bar:
             for n in range(prog.step, scene.n_steps):
-                check_stop(n, scene.n_steps, rf, latest)
+                check_stop(f" at step {n} of {scene.n_steps}", rf, latest)
                 t0 = time.perf_counter()
                 solver.step(n)
                 t0 = clock("solver", t0)
