@@ -126,3 +126,31 @@ def test_options_are_checked_before_anything_starts(tmp_path):
                     (dict(restart=tmp_path / "none.h5"), "no such checkpoint")]:
         with pytest.raises(ConfigError, match=msg):
             check_options(s, **kw)
+
+
+def test_python_callers_may_pass_tuples_and_numpy_numbers():
+    import numpy as np
+
+    s = load_scene("ellipse2d", cells=(16, np.int64(16)), lengths=(1.0, 2.0), seed=np.uint64(2**64 - 1),
+                   boundary=(("neumann", "neumann"), "periodic"), C=np.float32(0.0625))
+    assert s.cells == (16, 16) and s.seed == 2**64 - 1 and s.boundary[0] == ("neumann", "neumann")
+
+
+@pytest.mark.parametrize("overrides, message", [  # load_scene's own hostile inputs (the CLI's are in test_scene)
+    ({"cells": [16.0, 16]}, "cells = 16.0: give a whole number"),
+    ({"ppc_outer": -1}, "ppc_outer = -1.0"),
+    ({"seed": 2**64}, "seed = 18446744073709551616"),
+    ({"seed": -1}, "seed = -1"),
+    ({"name": "a/b"}, "name = 'a/b'"),
+    ({"name": 7}, "name = 7"),
+    ({"init": "nothing"}, "unknown initial condition 'nothing'"),
+    ({"init": 3}, "unknown initial condition 3"),
+    ({"t_equil": 1.0}, "t_equil = 1.0"),
+    ({"output_times": [0.0, float("nan")]}, "output_times = nan"),
+    ({"reservoir_ppc": [[1.0, float("inf")], 0.0]}, "reservoir_ppc = inf"),
+    ({"description": 5}, "description = 5"),
+])
+def test_load_scene_refuses_with_one_line(overrides, message):
+    with pytest.raises(ConfigError) as err:
+        load_scene("ellipse2d", **overrides)
+    assert message in str(err.value) and "\n" not in str(err.value)

@@ -347,7 +347,7 @@ def load_scene(name_or_path: str | Path, **overrides: Any) -> Scene:
 
 def make_scene(flat: dict[str, Any]) -> Scene:
     """Validate a flat dict of scene keys (scene fields plus the initial condition's parameters)."""
-    flat = dict(flat)
+    flat = {k: _plain(v) for k, v in flat.items()}
     if "init" not in flat:
         raise ConfigError("the scene names no initial condition: add [init] name = ...")
     ic_name = flat.pop("init")
@@ -435,6 +435,13 @@ def make_scene(flat: dict[str, Any]) -> Scene:
     _check_time_step(scene)
     check_memory(scene)
     return scene
+
+
+def _plain(value: Any) -> Any:
+    """Python callers' tuples as lists and NumPy scalars as Python numbers, as TOML gives them."""
+    if isinstance(value, (list, tuple)):
+        return [_plain(v) for v in value]
+    return value.item() if isinstance(value, np.generic) else value
 
 
 def _file_name(name: Any) -> str:
