@@ -116,9 +116,8 @@ class Key:
             raise ConfigError(f"{name} = {value!r}: give {'a whole number' if self.kind == 'int' else 'a number'}")
         if self.kind == "real":
             value = float(value)
-        bad = not math.isfinite(value) or (self.lo is not None and (value < self.lo or (self.above and value == self.lo))
-                                           ) or (self.hi is not None and value > self.hi)
-        if bad:
+        below = self.lo is not None and (value < self.lo or (self.above and value == self.lo))
+        if not math.isfinite(value) or below or (self.hi is not None and value > self.hi):
             raise ConfigError(f"{name} = {value!r}: give {self.describe()}")
         return value
 
@@ -149,7 +148,8 @@ class Scene:
     reservoir_ppc: tuple[tuple[float, float], ...] = key(
         "special", "dirichlet sides: reservoir density in particles per cell (default 0)",
         form=f"a number in [0, {MAX_PPC:g}]; per axis, or [lo, hi] per axis")
-    init: str = key("special", "the initial condition ([init] name = ...)", form="one of " + ", ".join(initial.REGISTRY))
+    init: str = key("special", "the initial condition ([init] name = ...)",
+                    form="one of " + ", ".join(initial.REGISTRY))
     init_params: tuple[tuple[str, Any], ...] = ()  # the initial condition's own keys (INIT_KEYS)
     method: str = key("choice", "what advances the density", "fv", choices=METHODS)
     C: float = key("real", "time step dt = C min(dx)^2", 0.0625, lo=0.0, above=True)

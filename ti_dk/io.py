@@ -58,7 +58,7 @@ class Outputs:
 
     ``run_file`` ``<out>/<name>_<method>.h5``, ``frames`` ``…_frames/``, ``snapshots``
     ``…_openpmd/``, ``checkpoint`` ``…_checkpoint.h5``, ``chunks`` ``…_chunks/`` (Dask) and
-    ``lock`` ``…_lock``: the file a run holds an exclusive lock on while it writes any of them.
+    ``lock`` ``….lock``: the file a run holds an exclusive lock on while it writes any of them.
     """
 
     out: Path
