@@ -34,7 +34,7 @@ def test_boundaries_per_axis_and_side():
         ("nope", {}, "unknown scene 'nope'"),
         ("void1d", {"bogus": 1}, "unknown key 'bogus'"),
         ("void1d", {"ensemble": "many"}, "ensemble = 'many': give a whole number"),
-        ("void1d", {"ensemble": 0}, "ensemble = 0: give a whole number >= 1"),
+        ("void1d", {"ensemble": 0}, "ensemble = 0: give a whole number in [1, 4294967296]"),
         ("void1d", {"cells": [0]}, "give a whole number >= 1"),
         ("void1d", {"cells": [1]}, "every axis needs at least 2 cells"),
         ("void1d", {"cells": [4, 4, 4, 4]}, "give 1, 2 or 3 cell counts"),
@@ -74,3 +74,83 @@ def test_anisotropic_stability_limit():
 def test_parse_value():
     assert parse_value("[64, 64]") == [64, 64]
     assert parse_value("0.5") == 0.5 and parse_value("true") is True and parse_value("fv") == "fv"
+
+
+def test_every_key_declared_once_with_doc_and_defaults_from_regrid():
+    from ti_dk.config import INIT_KEYS, KEYS, Scene, keys_help
+    from ti_dk.regrid import RegridParams
+
+    fields = {f.name for f in __import__("dataclasses").fields(Scene)} - {"init_params"}
+    assert fields | set(INIT_KEYS) == set(KEYS)
+    assert all(k.doc for k in KEYS.values())
+    help_text = keys_help()
+    assert all(f"  {name} " in help_text for name in KEYS)
+    s, rg = load_scene("ellipse2d", threshold=RegridParams().threshold), RegridParams()
+    assert (s.buffer, s.grid_efficiency, s.min_box, s.max_box) == (rg.buffer, rg.efficiency, rg.min_box, rg.max_box)
+    assert Scene.__dataclass_fields__["threshold"].default == rg.threshold
+
+
+def test_set_values_take_the_keys_kind():
+    assert parse_value("2024", "name") == "2024" and parse_value("2024", "seed") == 2024
+    assert load_scene("void1d", name=parse_value("2024", "name")).name == "2024"
+    assert parse_value("fv", "method") == "fv" and parse_value("[1, 2]", "histogram") == [1, 2]
+
+
+@pytest.mark.parametrize("seed", [0, 2**31 - 1, 2**31, 2**32, 2**64 - 1])
+def test_every_unsigned_64_bit_seed_is_accepted(seed):
+    assert load_scene("void1d", seed=seed).seed == seed
+
+
+def test_memory_and_work_estimates():
+    from ti_dk.config import machine_memory, memory_estimate, work_estimate
+
+    small = load_scene("void1d", ensemble=10)
+    est = memory_estimate(small)
+    # fv: q and one flux per cell (f64), three host copies: 10 members x 100 cells x (16 + 24) bytes
+    assert est["fields"] == 10 * 100 * 16 and est["host copies"] == 10 * 100 * 24
+    assert sum(est.values()) < machine_memory()
+    assert work_estimate(small)[0] == small.n_steps
+    big = dict(cells=[40000, 40000], method="fv")
+    with pytest.raises(ConfigError, match=r"needs about \d.* GiB .* but this machine has"):
+        load_scene("ellipse2d", **big)
+
+
+def test_options_are_checked_before_anything_starts(tmp_path):
+    from ti_dk.config import check_options
+
+    s = load_scene("void1d", ensemble=2)
+    check_options(s, out=tmp_path / "new" / "dir", executor="dask", workers=2, chunk=1)
+    (tmp_path / "f").write_text("")
+    for kw, msg in [(dict(out=tmp_path / "f"), "is a file"), (dict(threads=0), "--threads = 0"),
+                    (dict(executor="dask", workers=0), "--workers = 0"), (dict(chunk=3), "--chunk is for"),
+                    (dict(restart=tmp_path / "none.h5"), "no such checkpoint")]:
+        with pytest.raises(ConfigError, match=msg):
+            check_options(s, **kw)
+
+
+def test_python_callers_may_pass_tuples_and_numpy_numbers():
+    import numpy as np
+
+    s = load_scene("ellipse2d", cells=(16, np.int64(16)), lengths=(1.0, 2.0), seed=np.uint64(2**64 - 1),
+                   boundary=(("neumann", "neumann"), "periodic"), C=np.float32(0.0625))
+    assert s.cells == (16, 16) and s.seed == 2**64 - 1 and s.boundary[0] == ("neumann", "neumann")
+
+
+@pytest.mark.parametrize("overrides, message", [  # load_scene's own hostile inputs (the CLI's are in test_scene)
+    ({"cells": [16.0, 16]}, "cells = 16.0: give a whole number"),
+    ({"ppc_outer": -1}, "ppc_outer = -1.0"),
+    ({"seed": 2**64}, "seed = 18446744073709551616"),
+    ({"seed": -1}, "seed = -1"),
+    ({"name": "a/b"}, "name = 'a/b'"),
+    ({"name": 7}, "name = 7"),
+    ({"init": "nothing"}, "unknown initial condition 'nothing'"),
+    ({"init": 3}, "unknown initial condition 3"),
+    ({"t_equil": 1.0}, "t_equil = 1.0"),
+    ({"output_times": [0.0, float("nan")]}, "output_times = nan"),
+    ({"reservoir_ppc": [[1.0, float("inf")], 0.0]}, "reservoir_ppc = inf"),
+    ({"description": 5}, "description = 5"),
+])
+def test_load_scene_refuses_with_one_line(overrides, message):
+    with pytest.raises(ConfigError) as err:
+        load_scene("ellipse2d", **overrides)
+    assert message in str(err.value) and "\n" not in str(err.value)

@@ -38,7 +38,7 @@ def test_dask_chunks_equal_the_single_process_run_and_resume(tmp_path, method):
     assert len(files) == 6
     files[2].unlink()
     files[5].unlink()
-    again = ensemble.run(scene, "dask", out=tmp_path, chunk=7, workers=2, progress=False)
+    again = ensemble.run(scene, "dask", out=tmp_path, chunk=7, workers=2, progress=False, overwrite=True)
     _same(whole, again)
 
 

@@ -4,6 +4,7 @@ import sys
 from pathlib import Path
 
 import h5py
+import pytest
 import numpy as np
 from openpmd_viewer import OpenPMDTimeSeries
 
@@ -52,3 +53,31 @@ def test_version_is_the_one_in_pyproject(tmp_path):
     res = run(load_scene("void1d", ensemble=2, t_end=0.0001), out=tmp_path)
     with h5py.File(res.path) as f:
         assert json.loads(f.attrs["versions"])["ti_dk"] == ti_dk.__version__
+
+
+def test_snapshots_pass_the_openpmd_validator(tmp_path):
+    """openPMD's own checker (openpmd-validator, openPMD_check_h5): 0 errors for every snapshot."""
+    check = pytest.importorskip("openpmd_validator.check_h5")
+    scene = load_scene("ellipse2d", cells=[16, 16], t_end=0.001, compare="none", output_times=[0.0, 0.0005])
+    run(scene, out=tmp_path, frames=False)
+    snaps = sorted((tmp_path / "ellipse2d_hybrid_openpmd").glob("data*.h5"))
+    assert len(snaps) == 3
+    for p in snaps:
+        errors, warnings = check.check_file(str(p))
+        assert errors == 0, p.name
+
+
+def test_outputs_stay_inside_out_and_lock_one_run(tmp_path):
+    from ti_dk import ConfigError
+    from ti_dk.io import Outputs
+
+    scene = load_scene("void1d")
+    o = Outputs.of(tmp_path, scene)
+    paths = [o.run_file, o.frames, o.snapshots, o.checkpoint, o.chunks, o.lock]
+    assert all(p.parent == tmp_path and p.name.startswith("void1d_fv") for p in paths)
+    with o.claim():
+        with pytest.raises(ConfigError, match="being written by another run"):
+            with Outputs.of(tmp_path, scene).claim():
+                pass
+    with o.claim():  # released
+        pass

@@ -1,5 +1,6 @@
 """The run controller: result shapes and units, stationary pooling, the HDF5 record, failures."""
 import json
+import re
 
 import h5py
 import numpy as np
@@ -129,8 +130,8 @@ def test_a_million_particles_per_cell():
                                     histogram=None), 200)
         rel = s.density() * s.grid.cell_volume / 1e6 - 1
         assert 1e-5 < np.abs(rel).max() < 1e-2 and np.allclose(mass, mass[0], rtol=1e-12)
-    with pytest.raises(SimulationError, match="GiB"):
-        run(load_scene("equilibrium1d", method="particle", ppc=1e6, ensemble=100))
+    with pytest.raises(ti_dk.ConfigError, match="GiB"):  # refused before anything is allocated
+        load_scene("equilibrium1d", method="particle", ppc=1e6, ensemble=100)
 
 
 @pytest.mark.parametrize("region", ["one cell", "whole domain", "on the periodic seam", "on a Neumann wall"])
@@ -206,3 +207,127 @@ def test_summary_of_a_fixed_region_ensemble_speaks_per_member(tmp_path):
     assert "8 members" in text and "particles per member" in text and "(all members)" in text
     assert "fixed at the start: 22 cells per member" in text and "regrids" not in text
     assert str(tmp_path / "void1d_hybrid_frames") in text
+
+
+# -- damaged checkpoints: every edit is refused with one line before anything is loaded ---------
+@pytest.fixture(scope="module")
+def checkpoints(tmp_path_factory):
+    from ti_dk.sim import make_solver
+
+    d = tmp_path_factory.mktemp("ckpt")
+    out = {}
+    for method in ("hybrid", "particle"):
+        scene = load_scene("ellipse2d", method=method, cells=[16, 16], t_end=0.004, compare="none", regrid_interval=4,
+                           output_times=[0.0, 0.002])
+        run(scene, out=d, snapshots=False, frames=False, checkpoint_every=5)
+        out[method] = scene, d / f"ellipse2d_{method}_checkpoint.h5", make_solver(scene, scene.initial_ppc)
+    return out
+
+
+def _set(name, value):
+    def edit(f):
+        f[name][...] = value
+    return edit
+
+
+def _item(name, index, value):
+    def edit(f):
+        a = f[name][()]
+        a[index] = value(a[index]) if callable(value) else value
+        f[name][...] = a
+    return edit
+
+
+def _attr(name, value):
+    def edit(f):
+        f.attrs[name] = value(f.attrs[name]) if callable(value) else value
+    return edit
+
+
+def _delete(name):
+    def edit(f):
+        del f[name]
+    return edit
+
+
+def _region(f):  # cover one more cell that holds no particle
+    cov = f["solver/covered"][()]
+    free = np.argwhere(cov[0] == 0)[0]
+    cov[(0, *free)] = 1
+    f["solver/covered"][...] = cov
+
+
+EDITS = [  # (method, edit, what the message says)
+    ("hybrid", _item("solver/x", (0, 0, 0), np.nan), "NaN"),
+    ("hybrid", _item("solver/x", (0, 0, 1), 5.0), "outside the domain"),
+    ("hybrid", _item("solver/x", (0, 0, 0), -0.25), "outside the domain"),
+    ("hybrid", _item("solver/n_real", 0, lambda n: n - 1), "differ from its particle counts"),
+    ("hybrid", _item("solver/n_real", 0, lambda n: 10**6), "do not fit"),
+    ("hybrid", _item("solver/spde_q", (0, 8, 8), -1e6), "differ from its particle counts|diagnostics say"),
+    ("hybrid", _item("solver/spde_q", (0, 0, 0), -1e6), "differ from its particle counts|diagnostics say"),
+    ("hybrid", _item("solver/spde_q", (0, 8, 8), np.nan), "NaN"),
+    ("hybrid", _region, "region"),
+    ("hybrid", _attr("step", lambda s: s - 1), "diagnostics do not end"),
+    ("hybrid", _attr("step", lambda s: s + 1), "is outside"),
+    ("hybrid", _attr("step", 0), "step 0 is outside"),
+    ("hybrid", _attr("step", 10**6), "is outside"),
+    ("hybrid", _delete("solver/spde_q"), "state has keys"),
+    ("hybrid", _delete("diag/mass"), "diagnostics lack mass"),
+    ("hybrid", _delete("times"), "times"),
+    ("hybrid", _delete("rows/0"), "doesn't exist"),
+    ("hybrid", _delete("rows"), "statistics rows"),
+    ("hybrid", _attr("scene", lambda s: s.replace('"seed": 1', '"seed": 2')), "other scene settings"),
+    ("particle", _item("solver/x", (0, 3, 0), np.inf), "NaN"),
+    ("particle", _item("solver/x", (0, 3, 1), 1.0), "outside the domain"),
+    ("particle", _item("solver/n_alive", 0, lambda n: n - 5), "particles where the diagnostics say"),
+    ("particle", _delete("solver/n_alive"), "state has keys"),
+]
+
+
+@pytest.mark.parametrize("method, edit, message", EDITS)
+def test_every_edited_checkpoint_is_refused(checkpoints, tmp_path, method, edit, message):
+    import shutil
+
+    from ti_dk.sim import _read_checkpoint
+
+    scene, ckpt, solver = checkpoints[method]
+    bad = tmp_path / "edited.h5"
+    shutil.copy(ckpt, bad)
+    with h5py.File(bad, "r+") as f:
+        edit(f)
+    with pytest.raises(ti_dk.ConfigError) as err:
+        _read_checkpoint(bad, scene, solver, None)
+    assert re.search(message, str(err.value)) and "\n" not in str(err.value) and "unstable" not in str(err.value)
+
+
+@pytest.mark.parametrize("method", ["hybrid", "particle"])
+def test_an_untouched_checkpoint_is_accepted_and_broken_files_refused(checkpoints, tmp_path, method):
+    from ti_dk.sim import _read_checkpoint
+
+    scene, ckpt, solver = checkpoints[method]
+    assert _read_checkpoint(ckpt, scene, solver, None).step == 15
+    truncated = tmp_path / "truncated.h5"
+    truncated.write_bytes(ckpt.read_bytes()[: ckpt.stat().st_size // 2])
+    with pytest.raises(ti_dk.ConfigError, match="not a readable checkpoint|damaged checkpoint"):
+        _read_checkpoint(truncated, scene, solver, None)
+
+
+# -- seeds: the whole unsigned 64-bit range works; seeds below 2**31 keep their streams ----------
+def test_seed_key_keeps_small_seeds_and_covers_64_bits():
+    from ti_dk.rng import seed_key
+
+    assert seed_key(5) == (5, 0) and seed_key(2**31 - 1) == (2**31 - 1, 0)
+    for seed in (2**31, 2**32, 2**63, 2**64 - 1):
+        lo, hi = seed_key(seed)
+        assert -(2**31) <= lo < 2**31 and -(2**31) <= hi < 2**31  # fits Taichi's i32 literals
+        assert (lo % 2**32) | (hi % 2**32) << 32 == seed  # the same bits
+
+
+@pytest.mark.parametrize("method", ["fv", "particle", "hybrid"])
+def test_large_seeds_run_and_differ(method):
+    finals = []
+    for seed in (2**31, 2**64 - 1):
+        res = run(load_scene("void1d", method=method, seed=seed, ensemble=2, cells=[20], t_end=0.0005))
+        assert np.isfinite(res.final_density).all()
+        finals.append(res.final_density)
+    assert not np.array_equal(*finals)

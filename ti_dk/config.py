@@ -4,28 +4,41 @@ A scene file groups its keys in optional tables (``[grid]``, ``[init]``, ``[stat
 reader; the loaded :class:`Scene` is flat, so every key can be overridden by its bare name
 (``load_scene("void1d", ppc=5, C=0.05)`` or ``--set ppc=5``). Densities in scene files are in
 particles per cell; inside the solvers they are number densities (particles per unit volume).
+
+Every key is declared once, as a :class:`Scene` field carrying a :class:`Key` (kind, limits or
+choices, a one-line doc); validation, ``--set`` parsing and ``--help`` all read that declaration.
+The run options that are not scene keys (``--out``, Dask sizes, checkpoints) are checked by
+:func:`check_options`, and what a scene needs (memory, steps, time) by :func:`memory_estimate`
+and :func:`work_estimate`, all before Taichi starts.
 """
 from __future__ import annotations
 
-import dataclasses
-import inspect
-import math
-import sys
-import warnings
-from dataclasses import dataclass
-from pathlib import Path
-from typing import Any
+import os
+
+# Taichi prints a "[Taichi] version ..." banner when imported unless this is false; config is the
+# first module of ti_dk to load (grid imports taichi), so the banner is off for every entry point.
+os.environ.setdefault("ENABLE_TAICHI_HEADER_PRINT", "False")
+
+import dataclasses  # noqa: E402
+import inspect  # noqa: E402
+import math  # noqa: E402
+import re  # noqa: E402
+import sys  # noqa: E402
+import warnings  # noqa: E402
+from dataclasses import dataclass  # noqa: E402
+from pathlib import Path  # noqa: E402
+from typing import Any  # noqa: E402
 
 if sys.version_info >= (3, 11):
     import tomllib
 else:  # pragma: no cover - exercised on Python 3.10 only
     import tomli as tomllib
 
-import numpy as np
+import numpy as np  # noqa: E402
 
-from . import initial
-from .grid import Grid
-from .regrid import RegridParams
+from . import initial  # noqa: E402
+from .grid import Grid  # noqa: E402
+from .regrid import RegridParams  # noqa: E402
 
 SCENE_DIR = Path(__file__).resolve().parent.parent / "scenes"
 METHODS = ("fv", "gaussian", "particle", "hybrid")
@@ -37,6 +50,12 @@ PARTICLE_INITS = ("per_cell", "exact_uniform")
 ID_BITS_MIN = 8  # hybrid particle ids: birth cell in the high bits, at least this many for the index in the cell
 HYBRID_STEP_LIMIT = 1 << 27  # hybrid: particle steps a run may take (birth steps live in 27 bits)
 CLAMP_WARN = 1e-3  # warn when a particle step is clamped with more than this probability
+MAX_STEPS = 2**32 - 1  # the step is one 32-bit word of every random-number counter (rng.py)
+MAX_MEMBERS = 2**32  # so is the member index
+MAX_FIELD = 2**31 - 1  # Taichi indexes a field with 32-bit integers: members x cells must fit
+MAX_PPC = 1e15  # particles per cell: beyond, counts are not exact in f64 and fourth moments overflow
+NAME_RE = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,99}")  # a scene name is a plain file name
+_RG = RegridParams()  # the clustering defaults, written once in regrid.py
 
 
 class ConfigError(ValueError):
@@ -48,6 +67,68 @@ class ClampWarning(UserWarning):
 
 
 @dataclass(frozen=True)
+class Key:
+    """One scene key: what kind of value it takes, its limits or choices, and a one-line doc.
+
+    ``kind``: ``real``, ``int``, ``choice``, ``bool`` or ``text`` (checked by :meth:`check`), or
+    ``special`` (a list or pair with its own reader in :func:`make_scene`; ``form`` says what).
+    """
+
+    kind: str
+    doc: str
+    lo: float | None = None  # smallest value allowed
+    hi: float | None = None  # largest value allowed
+    above: bool = False  # lo itself is not allowed
+    choices: tuple = ()
+    form: str = ""  # what a special key takes, for --help
+
+    def describe(self) -> str:
+        """What the key takes, e.g. 'a number > 0' or 'one of fv, gaussian'."""
+        if self.kind == "choice":
+            return "one of " + ", ".join(self.choices)
+        if self.kind == "bool":
+            return "true or false"
+        if self.kind in ("text", "special"):
+            return self.form or "text"
+        what = "a whole number" if self.kind == "int" else "a number"
+        fmt = (lambda v: str(int(v))) if self.kind == "int" else (lambda v: f"{v:g}")
+        if self.lo is not None and self.hi is not None:
+            return f"{what} in {'(' if self.above else '['}{fmt(self.lo)}, {fmt(self.hi)}]"
+        if self.lo is not None:
+            return f"{what} {'>' if self.above else '>='} {fmt(self.lo)}"
+        return "a finite number" if self.kind == "real" else what
+
+    def check(self, name: str, value: Any) -> Any:
+        """The value, typed; a one-line :class:`ConfigError` naming ``name`` when it does not fit."""
+        if self.kind == "choice":
+            if value not in self.choices:
+                raise ConfigError(f"{name} = {value!r}: use {self.describe()}")
+            return value
+        if self.kind == "bool":
+            if not isinstance(value, bool):
+                raise ConfigError(f"{name} = {value!r}: give true or false")
+            return value
+        if self.kind == "text":
+            if not isinstance(value, str):
+                raise ConfigError(f"{name} = {value!r}: give a text in quotes")
+            return value
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or (
+                self.kind == "int" and not isinstance(value, int)):
+            raise ConfigError(f"{name} = {value!r}: give {'a whole number' if self.kind == 'int' else 'a number'}")
+        if self.kind == "real":
+            value = float(value)
+        below = self.lo is not None and (value < self.lo or (self.above and value == self.lo))
+        if not math.isfinite(value) or below or (self.hi is not None and value > self.hi):
+            raise ConfigError(f"{name} = {value!r}: give {self.describe()}")
+        return value
+
+
+def key(kind: str, doc: str, default: Any = dataclasses.MISSING, **limits) -> Any:
+    """A :class:`Scene` field declared with its :class:`Key`."""
+    return dataclasses.field(default=default, metadata={"key": Key(kind, doc, **limits)})
+
+
+@dataclass(frozen=True)
 class Scene:
     """A validated, immutable description of one run.
 
@@ -56,37 +137,55 @@ class Scene:
     ``sample_every``-th step after ``t_equil`` is pooled into one statistics row at ``t_end``.
     """
 
-    name: str
-    cells: tuple[int, ...]
-    lengths: tuple[float, ...]
-    boundary: tuple[tuple[str, str], ...]
-    reservoir_ppc: tuple[tuple[float, float], ...]
-    init: str
-    init_params: tuple[tuple[str, Any], ...]
-    method: str = "fv"
-    C: float = 0.0625
-    t_end: float = 0.01
-    output_times: tuple[float, ...] = ()
-    ensemble: int = 1
-    seed: int = 0
-    precision: str = "f64"
-    threshold: float = 5.0
-    t_equil: float | None = None
-    sample_every: int = 1
-    histogram: tuple[int, int] | None = None
-    particle_init: str = "per_cell"
-    spde: str = "fv"
-    ghost_profile: str = "mean"
-    particle_substeps: int = 1  # hybrid: particle steps of Δt/k per SPDE step (paper end of §3.1)
-    compare: str | None = None  # a second method run on the same initial condition, drawn beside
-    movie_frames: int = 48  # frames evenly spaced in time when a movie is asked for
-    regrid_interval: int = 10
-    buffer: int = 1
-    grid_efficiency: float = 0.7
-    min_box: int = 2
-    max_box: int = 32
-    allow_unstable: bool = False
-    description: str = ""
+    name: str = key("text", "the run's name; files are OUT/<name>_<method>.* (default: the scene file's name)",
+                    form="a plain file name: letters, digits, '.', '_', '-'")
+    cells: tuple[int, ...] = key("special", "cells per axis; the number of entries is the dimension",
+                                 form="1 to 3 whole numbers >= 2, e.g. [64, 64]")
+    lengths: tuple[float, ...] = key("special", "domain length per axis (default 1 each)",
+                                     form="one number > 0 per axis")
+    boundary: tuple[tuple[str, str], ...] = key(
+        "special", "boundary of each side (default periodic)",
+        form=f"one of {', '.join(BOUNDARY_KINDS)}; per axis, or [lo, hi] per axis")
+    reservoir_ppc: tuple[tuple[float, float], ...] = key(
+        "special", "dirichlet sides: reservoir density in particles per cell (default 0)",
+        form=f"a number in [0, {MAX_PPC:g}]; per axis, or [lo, hi] per axis")
+    init: str = key("special", "the initial condition ([init] name = ...)",
+                    form="one of " + ", ".join(initial.REGISTRY))
+    init_params: tuple[tuple[str, Any], ...] = ()  # the initial condition's own keys (INIT_KEYS)
+    method: str = key("choice", "what advances the density", "fv", choices=METHODS)
+    C: float = key("real", "time step dt = C min(dx)^2", 0.0625, lo=0.0, above=True)
+    t_end: float = key("real", "end time", 0.01, lo=0.0, above=True)
+    output_times: tuple[float, ...] = key("special", "times of the statistics rows and frames (t_end is always one)",
+                                          (), form="a list of numbers in [0, t_end]")
+    ensemble: int = key("int", "independent members", 1, lo=1, hi=MAX_MEMBERS)
+    seed: int = key("int", "random seed: the same seed gives the same bits on any thread count", 0,
+                    lo=0, hi=2**64 - 1)
+    precision: str = key("choice", "floating-point precision of the solvers", "f64", choices=PRECISIONS)
+    threshold: float = key("real", "hybrid: particles where the SPDE holds fewer particles per cell than this",
+                           _RG.threshold, lo=0.0, above=True)
+    t_equil: float | None = key("special", "stationary runs: pool samples after this time (default: not stationary)",
+                                None, form="a number in [0, t_end)")
+    sample_every: int = key("int", "stationary runs: pool every k-th step", 1, lo=1)
+    histogram: tuple[int, int] | None = key("special", "per-cell histogram of particles per cell, one-particle bins",
+                                            None, form="[lo, hi], whole numbers with lo < hi")
+    particle_init: str = key("choice", "particle method: ppc per cell, or exactly ppc x cells uniform particles",
+                             "per_cell", choices=PARTICLE_INITS)
+    spde: str = key("choice", "hybrid: the SPDE kept on the whole grid", "fv", choices=SPDES)
+    ghost_profile: str = key("choice", "hybrid: how sampled particles lie in their cell (mean: slope of q-bar)",
+                             "mean", choices=GHOST_PROFILES)
+    particle_substeps: int = key("int", "hybrid: particle steps of dt/k per SPDE step (paper, end of 3.1)", 1,
+                                 lo=1, hi=64)
+    compare: str | None = key("special", "a second method run on the same start and drawn beside (default none)",
+                              None, form="one of " + ", ".join(METHODS) + ", none")
+    movie_frames: int = key("int", "--movie: frames evenly spaced in time", 48, lo=1, hi=10_000)
+    regrid_interval: int = key("int", "hybrid: steps between regrids (0: the region is fixed)", 10, lo=0)
+    buffer: int = key("int", "hybrid: grow tagged cells by this many cells", _RG.buffer, lo=0)
+    grid_efficiency: float = key("real", "hybrid: smallest tagged fraction of a box", _RG.efficiency,
+                                 lo=0.0, hi=1.0, above=True)
+    min_box: int = key("int", "hybrid: smallest box side in cells", _RG.min_box, lo=1)
+    max_box: int = key("int", "hybrid: largest box side in cells", _RG.max_box, lo=1)
+    allow_unstable: bool = key("bool", "accept C beyond the explicit stability limit (experiments)", False)
+    description: str = key("text", "a line saying what the scene is", "")
 
     # -- derived geometry and time stepping ---------------------------------------------
     @property
@@ -152,9 +251,51 @@ class Scene:
 
 
 # ---------------------------------------------------------------------------------------
-# loading
+# the keys: scene fields, and the initial conditions' own parameters
 # ---------------------------------------------------------------------------------------
 _FIELDS = {f.name: f for f in dataclasses.fields(Scene)}
+_PPC = dict(lo=0.0, hi=MAX_PPC)
+INIT_KEYS = {  # the initial conditions' parameters (their defaults are in initial.py)
+    "ppc": Key("real", "particles per cell (void: outside the void)", **_PPC),
+    "ppc_outer": Key("real", "particles per cell outside the outer shape", **_PPC),
+    "ppc_inner": Key("real", "particles per cell inside the inner shape", **_PPC),
+    "void_lo": Key("real", "void: where the void starts along axis 0 (length units; may lie outside)"),
+    "void_hi": Key("real", "void: where the void ends along axis 0 (length units, >= void_lo)"),
+    "outer_r": Key("real", "radius of the outer shape (unit box)", lo=0.0),
+    "inner_r": Key("real", "radius of the inner shape (unit box)", lo=0.0),
+    "inner_x": Key("real", "spheres: offset of the inner sphere along x"),
+    "inner_y": Key("real", "spheres: offset of the inner sphere along y"),
+    "inner_z": Key("real", "spheres: offset of the inner sphere along z"),
+}
+INIT_AXES = {"ellipses": 2, "spheres": 3}  # initial conditions drawn for one dimension only
+KEYS = {k: f.metadata["key"] for k, f in _FIELDS.items() if "key" in f.metadata} | INIT_KEYS
+
+
+def _default(name: str) -> Any:
+    """A key's default as --help shows it (None: none, or it depends on the scene)."""
+    if name in _FIELDS:
+        d = _FIELDS[name].default
+        return None if d is dataclasses.MISSING else d
+    for f in initial.REGISTRY.values():
+        p = inspect.signature(f).parameters.get(name)
+        if p is not None:
+            return p.default
+    return None
+
+
+def keys_help() -> str:
+    """One line per scene key: name, what it takes, default, doc (for ``--help``)."""
+    lines = []
+    for name, k in KEYS.items():
+        d = _default(name)
+        shown = "" if d in (None, (), "") else f"; default {str(d).lower() if isinstance(d, bool) else d}"
+        lines.append(f"  {name:<16} {k.doc} ({k.describe()}{shown})")
+    return "\n".join(lines)
+
+
+# ---------------------------------------------------------------------------------------
+# loading
+# ---------------------------------------------------------------------------------------
 _SECTIONS = ("grid", "init", "stats")
 
 
@@ -171,20 +312,26 @@ def _read_toml(name_or_path: str | Path) -> tuple[str, dict[str, Any]]:
             f"unknown scene '{name_or_path}': give a .toml path or one of {', '.join(available_scenes())}"
         )
     try:
-        raw = tomllib.loads(path.read_text())
+        raw = tomllib.loads(path.read_bytes().decode("utf-8"))
     except tomllib.TOMLDecodeError as exc:
-        raise ConfigError(f"{path}: not valid TOML ({exc})") from None
+        raise ConfigError(f"{path}: not valid TOML ({exc}): fix the file") from None
+    except UnicodeDecodeError:
+        raise ConfigError(f"{path}: not UTF-8 text: give a TOML scene file") from None
+    except IsADirectoryError:
+        raise ConfigError(f"{path} is a directory: give a .toml scene file") from None
+    except OSError as exc:
+        raise ConfigError(f"{path}: cannot be read ({exc.strerror}): check the path and its permissions") from None
     return path.stem, raw
 
 
 def _flatten(raw: dict[str, Any]) -> dict[str, Any]:
     flat: dict[str, Any] = {}
-    for key, value in raw.items():
-        if key in _SECTIONS and isinstance(value, dict):
+    for key_, value in raw.items():
+        if key_ in _SECTIONS and isinstance(value, dict):
             for sub, v in value.items():
-                flat["init" if (key, sub) == ("init", "name") else sub] = v
+                flat["init" if (key_, sub) == ("init", "name") else sub] = v
         else:
-            flat[key] = value
+            flat[key_] = value
     return flat
 
 
@@ -205,12 +352,12 @@ def load_scene(name_or_path: str | Path, **overrides: Any) -> Scene:
 
 def make_scene(flat: dict[str, Any]) -> Scene:
     """Validate a flat dict of scene keys (scene fields plus the initial condition's parameters)."""
-    flat = dict(flat)
+    flat = {k: _plain(v) for k, v in flat.items()}
     if "init" not in flat:
         raise ConfigError("the scene names no initial condition: add [init] name = ...")
     ic_name = flat.pop("init")
-    if ic_name not in initial.REGISTRY:
-        raise ConfigError(f"unknown initial condition '{ic_name}': use one of {', '.join(initial.REGISTRY)}")
+    if not isinstance(ic_name, str) or ic_name not in initial.REGISTRY:
+        raise ConfigError(f"unknown initial condition {ic_name!r}: use one of {', '.join(initial.REGISTRY)}")
     ic_sig = inspect.signature(initial.REGISTRY[ic_name])
     ic_keys = [p for p in ic_sig.parameters if p != "x"]
     params = {k: flat.pop(k) for k in list(flat) if k in ic_keys}
@@ -220,9 +367,12 @@ def make_scene(flat: dict[str, Any]) -> Scene:
                 raise ConfigError(f"initial condition '{ic_name}' needs '{k}': set it in [init] or with --set {k}=...")
             params[k] = p.default
     for k, v in params.items():
-        params[k] = _number(k, v, positive=False)
-    unknown = [k for k in flat if k not in _FIELDS]
+        params[k] = INIT_KEYS.get(k, Key("real", "")).check(k, v)
+    unknown = [k for k in flat if k not in _FIELDS or k == "init_params"]
     if unknown:
+        if unknown[0] in INIT_KEYS:
+            raise ConfigError(f"'{unknown[0]}' is not a parameter of initial condition '{ic_name}': "
+                              f"its parameters are {', '.join(ic_keys)}")
         valid = sorted(set(_FIELDS) - {"init_params", "name"} | set(ic_keys))
         raise ConfigError(f"unknown key '{unknown[0]}': valid keys are {', '.join(valid)}")
 
@@ -232,8 +382,11 @@ def make_scene(flat: dict[str, Any]) -> Scene:
         raise ConfigError(f"cells has {dim} entries: give 1, 2 or 3 cell counts")
     if min(cells) < 2:
         raise ConfigError(f"cells = {list(cells)}: every axis needs at least 2 cells")
+    if INIT_AXES.get(ic_name, dim) != dim:
+        raise ConfigError(f"cells = {list(cells)}: initial condition '{ic_name}' is {INIT_AXES[ic_name]}D, "
+                          f"give {INIT_AXES[ic_name]} cell counts")
     lengths = flat.get("lengths", [1.0] * dim)
-    lengths = tuple(_number("lengths", v) for v in (lengths if isinstance(lengths, list) else [lengths]))
+    lengths = tuple(_number("lengths", v) for v in (lengths if isinstance(lengths, list) else [lengths] * dim))
     if len(lengths) != dim:
         raise ConfigError(f"lengths has {len(lengths)} entries but cells has {dim}: give one length per axis")
     boundary = _per_side("boundary", flat.get("boundary", "periodic"), dim, str)
@@ -245,54 +398,19 @@ def make_scene(flat: dict[str, Any]) -> Scene:
             raise ConfigError(f"axis {axis} is periodic on one side only: make both sides periodic or neither")
     reservoir = _per_side("reservoir_ppc", flat.get("reservoir_ppc", 0.0), dim, float)
     for r in (r for sides in reservoir for r in sides):
-        if r < 0:
-            raise ConfigError(f"reservoir_ppc = {r}: give a density >= 0 particles per cell")
+        Key("real", "", **_PPC).check("reservoir_ppc", r)
 
-    kw: dict[str, Any] = dict(
-        name=str(flat.get("name", ic_name)),
-        cells=cells,
-        lengths=lengths,
-        boundary=boundary,
-        reservoir_ppc=reservoir,
-        init=ic_name,
-        init_params=tuple(sorted(params.items())),
-        description=str(flat.get("description", "")),
-    )
-    for key in ("method", "precision", "particle_init", "spde", "ghost_profile"):
-        if key in flat:
-            kw[key] = flat[key]
-    choices = {"method": METHODS, "precision": PRECISIONS, "particle_init": PARTICLE_INITS, "spde": SPDES,
-               "ghost_profile": GHOST_PROFILES}
-    for key, allowed in choices.items():
-        value = kw.get(key, _FIELDS[key].default)
-        if value not in allowed:
-            raise ConfigError(f"{key} = {value!r}: use one of {', '.join(allowed)}")
-    for key in ("C", "t_end", "threshold"):
-        if key in flat:
-            kw[key] = _number(key, flat[key])
+    kw: dict[str, Any] = dict(cells=cells, lengths=lengths, boundary=boundary, reservoir_ppc=reservoir, init=ic_name,
+                              init_params=tuple(sorted(params.items())))
+    for name, k in KEYS.items():
+        if name in flat and name in _FIELDS and k.kind != "special":
+            kw[name] = k.check(name, flat[name])
+    kw["name"] = _file_name(kw.get("name", ic_name))
     if flat.get("compare") not in (None, "none"):
         if flat["compare"] not in METHODS:
             raise ConfigError(f"compare = {flat['compare']!r}: use one of {', '.join(METHODS)}, or none")
         if flat["compare"] != kw.get("method", _FIELDS["method"].default):  # comparing with itself: nothing
             kw["compare"] = flat["compare"]
-    for key in ("ensemble", "sample_every", "min_box", "max_box", "movie_frames", "particle_substeps"):
-        if key in flat:
-            kw[key] = _int(key, flat[key], minimum=1)
-    for key in ("regrid_interval", "buffer"):
-        if key in flat:
-            kw[key] = _int(key, flat[key], minimum=0)
-    if "grid_efficiency" in flat:
-        kw["grid_efficiency"] = _number("grid_efficiency", flat["grid_efficiency"])
-        if kw["grid_efficiency"] > 1:
-            raise ConfigError(f"grid_efficiency = {kw['grid_efficiency']}: give a fraction in (0, 1]")
-    if "seed" in flat:
-        kw["seed"] = _int("seed", flat["seed"], minimum=0)
-        if kw["seed"] >= 2**64:
-            raise ConfigError("seed must be below 2**64")
-    if "allow_unstable" in flat:
-        if not isinstance(flat["allow_unstable"], bool):
-            raise ConfigError("allow_unstable must be true or false")
-        kw["allow_unstable"] = flat["allow_unstable"]
     t_end = kw.get("t_end", _FIELDS["t_end"].default)
     if flat.get("t_equil") is not None:
         kw["t_equil"] = _number("t_equil", flat["t_equil"], positive=False)
@@ -318,8 +436,50 @@ def make_scene(flat: dict[str, Any]) -> Scene:
     if scene.method == "hybrid" and 32 - math.ceil(math.log2(math.prod(n + 2 for n in cells))) < ID_BITS_MIN:
         raise ConfigError(f"cells = {list(cells)}: too many cells for the hybrid's 32-bit particle ids; "
                           f"use at most about {2 ** (32 - ID_BITS_MIN):.3g} cells")
+    _check_sizes(scene)
     _check_time_step(scene)
+    check_memory(scene)
     return scene
+
+
+def _plain(value: Any) -> Any:
+    """Python callers' tuples as lists and NumPy scalars as Python numbers, as TOML gives them."""
+    if isinstance(value, (list, tuple)):
+        return [_plain(v) for v in value]
+    return value.item() if isinstance(value, np.generic) else value
+
+
+def _file_name(name: Any) -> str:
+    """The scene name, which names the output files: a plain file name, so they stay inside --out."""
+    if not isinstance(name, str) or not NAME_RE.fullmatch(name):
+        raise ConfigError(f"name = {name!r}: give a plain file name of letters, digits, '.', '_' or '-' "
+                          "(it names the output files inside --out)")
+    return name
+
+
+def _check_sizes(scene: Scene) -> None:
+    """Sizes whose derived quantities would overflow, underflow or mean nothing."""
+    cells = math.prod(scene.cells)
+    if scene.ensemble * cells > MAX_FIELD:
+        raise ConfigError(f"ensemble x cells = {scene.ensemble * cells:,}: Taichi fields hold at most {MAX_FIELD:,} "
+                          "entries; lower the ensemble or the cells (or split it: --executor dask)")
+    vol = scene.cell_volume
+    if not (math.isfinite(vol) and vol > 0 and math.isfinite(1 / vol) and scene.dt > 0 and math.isfinite(scene.dt)
+            and all(math.isfinite(h * h) and h * h > 0 for h in scene.dx)):
+        raise ConfigError(f"lengths = {list(scene.lengths)}, C = {scene.C}: the cell size or time step under- or "
+                          "overflows double precision; give lengths and C nearer 1")
+    steps = scene.t_end / scene.dt
+    if steps < 0.5:
+        raise ConfigError(f"t_end = {scene.t_end:g} is shorter than one time step dt = {scene.dt:.4g}: "
+                          f"raise t_end (or C)")
+    if steps > MAX_STEPS:
+        raise ConfigError(f"t_end = {scene.t_end:g} is {steps:.3g} steps of dt = {scene.dt:.4g}: at most "
+                          f"{MAX_STEPS:,} steps fit the random-number counter; lower t_end or raise C")
+    if scene.t_equil is not None and scene.n_steps - round(scene.t_equil / scene.dt) < 1:
+        raise ConfigError(f"t_equil = {scene.t_equil:g} leaves no step to sample before t_end: lower t_equil")
+    p = scene.params
+    if scene.init == "void" and not p["void_lo"] <= p["void_hi"]:
+        raise ConfigError(f"void_lo = {p['void_lo']}, void_hi = {p['void_hi']}: give void_lo <= void_hi")
 
 
 def _check_time_step(scene: Scene) -> None:
@@ -344,58 +504,173 @@ def _check_time_step(scene: Scene) -> None:
 
 
 # ---------------------------------------------------------------------------------------
+# what a run needs: memory, steps, time
+# ---------------------------------------------------------------------------------------
+SPDE_RATE = 2e7  # cell-updates per second on 2 CPU cores (benchmarks/RESULTS.md, rounded down)
+PARTICLE_RATE = 3e7  # particle steps per second, likewise
+
+
+def _particles(scene: Scene) -> float:
+    """The particles per member the particle method must hold (an upper bound for huge grids)."""
+    from .particles import ParticleSolver  # pure NumPy; imported here to keep config light
+
+    m = math.prod(scene.cells)
+    if m <= 10**7:
+        return ParticleSolver.capacity_for(scene.grid, scene.initial_ppc)
+    return 1.25 * math.ceil(_ppc_max(scene)) * m + 64
+
+
+def _ppc_max(scene: Scene) -> float:
+    """The largest initial or reservoir density, in particles per cell."""
+    return max([v for k, v in scene.params.items() if k.startswith("ppc")] + [scene.grid.reservoir_ppc_max])
+
+
+def memory_estimate(scene: Scene) -> dict[str, float]:
+    """Bytes a run needs, by part: solver fields, particles, host copies, statistics, histogram.
+
+    Rough (within a factor of about 2) but computed before anything is allocated; the hybrid's
+    particle pool grows with its region and is counted for the threshold density everywhere.
+    """
+    cells = math.prod(scene.cells)
+    mc = scene.ensemble * cells  # member-cells
+    real = 4 if scene.precision == "f32" else 8
+    est = {"fields": 0.0, "particles": 0.0}
+    for method in (scene.method, scene.compare):
+        if method in ("fv", "gaussian", "hybrid"):
+            est["fields"] += mc * (1 + scene.dim) * real
+        if method == "hybrid":
+            est["fields"] += mc * 32  # region, ghost ring, cell lists, counts
+            est["particles"] += 2 * 1.5 * min(scene.threshold, _ppc_max(scene)) * mc * (scene.dim * real + 8)
+        if method == "particle":
+            est["fields"] += mc * 4
+            est["particles"] += scene.ensemble * _particles(scene) * (scene.dim * real + 8 * scene.grid.has_dirichlet)
+    est["host copies"] = 3 * mc * 8  # density read back as float64, and its statistics update
+    rows = 1 if scene.t_equil is not None else len(scene.output_times)
+    est["statistics"] = (rows + 1) * cells * 12 * 8  # moments and accumulators per row
+    if scene.histogram:
+        est["histogram"] = (rows + 1) * cells * (scene.histogram[1] - scene.histogram[0] + 1) * 8
+    return est
+
+
+def machine_memory() -> int:
+    """Bytes of memory this process may use: physical memory, or a smaller cgroup limit."""
+    have = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    try:
+        limit = Path("/sys/fs/cgroup/memory.max").read_text().strip()
+        if limit.isdigit():
+            have = min(have, int(limit))
+    except OSError:
+        pass
+    return have
+
+
+def check_memory(scene: Scene) -> None:
+    """Refuse, with one line, a scene that needs more memory than this machine has."""
+    est = memory_estimate(scene)
+    need, have = sum(est.values()), machine_memory()
+    if need > have:
+        part = max(est, key=est.get)
+        hint = {"histogram": "narrow histogram", "particles": "lower ppc or the ensemble, or use fv or hybrid"}
+        raise ConfigError(f"the run needs about {need / 2**30:.3g} GiB ({part} {est[part] / 2**30:.3g} GiB) but this "
+                          f"machine has {have / 2**30:.3g} GiB: {hint.get(part, 'lower cells or the ensemble')}")
+
+
+def work_estimate(scene: Scene) -> tuple[int, float]:
+    """``(steps, seconds)``: the steps of the run and a rough wall time on 2 CPU cores."""
+    mc = scene.ensemble * math.prod(scene.cells)
+    per_step = 0.0
+    for method in (scene.method, scene.compare):
+        if method in ("fv", "gaussian", "hybrid"):
+            per_step += mc / SPDE_RATE
+        if method == "particle":
+            per_step += scene.ensemble * _particles(scene) / PARTICLE_RATE
+    return scene.n_steps, scene.n_steps * per_step
+
+
+# ---------------------------------------------------------------------------------------
+# run options that are not scene keys
+# ---------------------------------------------------------------------------------------
+def check_options(scene: Scene, *, out: str | Path | None = None, executor: str = "local",
+                  workers: int | None = None, chunk: int | None = None, threads: int | None = None,
+                  scheduler: str | None = None, checkpoint_every: int = 0, restart: str | Path | None = None,
+                  movie: bool = False) -> None:
+    """Check the options of a run (the command line's, or :func:`ti_dk.run`'s) before anything starts."""
+    def whole(name: str, value: Any, lo: int, hi: int | None = None) -> None:
+        if value is None:
+            return
+        Key("int", "", lo=lo, hi=hi).check(name, value)
+
+    whole("--threads", threads, 1, 4096)
+    whole("--checkpoint-every", checkpoint_every, 0, MAX_STEPS)
+    whole("--workers", workers, 1, 4 * (os.cpu_count() or 1) if scheduler is None else 100_000)
+    whole("--chunk", chunk, 1, MAX_MEMBERS)
+    if executor == "dask":
+        for flag, given in (("--checkpoint-every", checkpoint_every), ("--restart", restart), ("--movie", movie)):
+            if given:
+                raise ConfigError(f"{flag} is for the local executor: drop it or use --executor local "
+                                  "(a stopped Dask run resumes from its finished chunks)")
+    else:
+        for flag, given in (("--workers", workers), ("--chunk", chunk), ("--scheduler", scheduler)):
+            if given is not None:
+                raise ConfigError(f"{flag} is for --executor dask: drop it or add --executor dask")
+    if restart is not None and not Path(restart).is_file():
+        raise ConfigError(f"--restart {restart}: no such checkpoint file")
+    if out is not None:
+        p = Path(out)
+        parent = next((q for q in (p, *p.parents) if q.exists()), None)
+        if parent is not None and not parent.is_dir():
+            raise ConfigError(f"--out {out}: {parent} is a file: give a directory")
+        if parent is not None and not os.access(parent, os.W_OK | os.X_OK):
+            raise ConfigError(f"--out {out}: {parent} is not writable here; give a directory you can write")
+
+
+# ---------------------------------------------------------------------------------------
 # typed readers with one-line messages
 # ---------------------------------------------------------------------------------------
-def _number(key: str, value: Any, positive: bool = True) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float)):
-        raise ConfigError(f"{key} = {value!r}: give a number")
-    value = float(value)
-    if not math.isfinite(value) or (positive and value <= 0):
-        raise ConfigError(f"{key} = {value}: give a finite number{' > 0' if positive else ''}")
-    return value
+def _number(key_: str, value: Any, positive: bool = True) -> float:
+    return Key("real", "", lo=0.0 if positive else None, above=positive).check(key_, value)
 
 
-def _int(key: str, value: Any, minimum: int | None = 1) -> int:
-    if isinstance(value, bool) or not isinstance(value, int):
-        raise ConfigError(f"{key} = {value!r}: give a whole number")
-    if minimum is not None and value < minimum:
-        raise ConfigError(f"{key} = {value}: give a whole number >= {minimum}")
-    return value
+def _int(key_: str, value: Any, minimum: int | None = 1) -> int:
+    return Key("int", "", lo=minimum).check(key_, value)
 
 
-def _int_tuple(key: str, value: Any, minimum: int | None = 1) -> tuple[int, ...]:
+def _int_tuple(key_: str, value: Any, minimum: int | None = 1) -> tuple[int, ...]:
     if value is None:
-        raise ConfigError(f"the scene has no '{key}': add it (e.g. [grid] cells = [100])")
+        raise ConfigError(f"the scene has no '{key_}': add it (e.g. [grid] cells = [100])")
     items = value if isinstance(value, list) else [value]
-    return tuple(_int(key, v, minimum) for v in items)
+    return tuple(_int(key_, v, minimum) for v in items)
 
 
-def _per_side(key: str, value: Any, dim: int, kind: type) -> tuple[tuple[Any, Any], ...]:
+def _per_side(key_: str, value: Any, dim: int, kind: type) -> tuple[tuple[Any, Any], ...]:
     """Expand a scalar, a per-axis list, or a per-axis list of [lo, hi] pairs."""
     def one(v: Any) -> Any:
         if kind is float:
-            return _number(key, v, positive=False)
+            return _number(key_, v, positive=False)
         if not isinstance(v, str):
-            raise ConfigError(f"{key} = {v!r}: give a name")
+            raise ConfigError(f"{key_} = {v!r}: give a name")
         return v
 
     if not isinstance(value, list):
         return tuple((one(value), one(value)) for _ in range(dim))
     if len(value) != dim:
-        raise ConfigError(f"{key} has {len(value)} entries but the grid has {dim} axes: give one per axis")
+        raise ConfigError(f"{key_} has {len(value)} entries but the grid has {dim} axes: give one per axis")
     out = []
     for v in value:
         if isinstance(v, list):
             if len(v) != 2:
-                raise ConfigError(f"{key}: give [lo, hi] for each axis")
+                raise ConfigError(f"{key_}: give [lo, hi] for each axis")
             out.append((one(v[0]), one(v[1])))
         else:
             out.append((one(v), one(v)))
     return tuple(out)
 
 
-def parse_value(text: str) -> Any:
-    """Parse a ``--set key=value`` value as TOML (numbers, lists, booleans), else a string."""
+def parse_value(text: str, key_: str | None = None) -> Any:
+    """Parse a ``--set key=value`` value as TOML (numbers, lists, booleans), else a string; for a
+    key that takes text or a choice, the text as given (``--set name=2024``)."""
+    if key_ in KEYS and KEYS[key_].kind in ("text", "choice") and not text.startswith(('"', "'")):
+        return text
     try:
         return tomllib.loads(f"v = {text}")["v"]
     except tomllib.TOMLDecodeError:

@@ -21,8 +21,9 @@ import numpy as np
 from tqdm import tqdm
 
 from . import sim
-from .config import ConfigError, Scene
-from .io import RunFile, atomic_h5, read_group, read_rows, same_scene, scene_json, write_group, write_rows
+from .config import ConfigError, Scene, check_options
+from .io import (Outputs, RunFile, atomic_h5, output_error, read_group, read_rows, same_scene, scene_json, write_group,
+                 write_rows)
 from .stats import CellStats
 
 EXECUTORS = ("local", "dask")
@@ -52,20 +53,35 @@ def run_chunk(scene: Scene, member0: int, threads: int | None = None) -> dict:
 
 
 def run(scene: Scene, executor: str = "local", out: str | Path | None = None, progress: bool | None = None,
-        chunk: int | None = None, workers: int = 2, threads: int = 1, scheduler: str | None = None) -> sim.Result:
+        chunk: int | None = None, workers: int = 2, threads: int = 1, scheduler: str | None = None,
+        overwrite: bool = False) -> sim.Result:
     """Run ``scene`` in-process (``local``: the batched ensemble) or in chunks on Dask.
 
     ``chunk``: members per chunk (default: the ensemble over 4 × workers for members under 4096
     cells, over the workers for larger ones); ``workers`` and
     ``threads`` size the LocalCluster started on this machine unless ``scheduler`` (an address
-    such as ``tcp://host:8786``, e.g. from dask-jobqueue) names an existing cluster.
+    such as ``tcp://host:8786``, e.g. from dask-jobqueue) names an existing cluster. The output
+    is claimed as :func:`ti_dk.sim.run` claims it (one run at a time, ``overwrite`` to replace a
+    complete result); a signal seen by :func:`ti_dk.sim.stop_on_signals` stops it between chunks.
     """
     if executor not in EXECUTORS:
         raise ConfigError(f"executor '{executor}': use one of {', '.join(EXECUTORS)}")
     if executor == "local":
-        return sim.run(scene, out=out, progress=progress)
+        return sim.run(scene, out=out, progress=progress, overwrite=overwrite)
+    check_options(scene, executor="dask", chunk=chunk, workers=workers, threads=threads, scheduler=scheduler)
+    if out is None:
+        return _run_dask(scene, None, progress, chunk, workers, threads, scheduler)
+    outputs = Outputs.of(out, scene)
+    with outputs.claim(overwrite):
+        try:
+            return _run_dask(scene, outputs, progress, chunk, workers, threads, scheduler)
+        except OSError as exc:
+            raise output_error(outputs.out, exc) from None
+
+
+def _run_dask(scene: Scene, outputs: Outputs | None, progress, chunk, workers, threads, scheduler) -> sim.Result:
     try:
-        from distributed import Client, LocalCluster, Queue, as_completed
+        from distributed import Client, LocalCluster, Queue
     except ImportError:
         raise ConfigError("the dask executor needs Dask: pip install -e '.[dask]'") from None
     if scene.dim > 1 and scene.ensemble == 1:
@@ -76,7 +92,7 @@ def run(scene: Scene, executor: str = "local", out: str | Path | None = None, pr
     per_worker = 4 if math.prod(scene.cells) < 4096 else 1
     size = chunk or max(1, math.ceil(scene.ensemble / (per_worker * workers)))
     todo = chunks(scene.ensemble, size)
-    store = Path(out) / f"{scene.name}_{scene.method}_chunks" if out is not None else None
+    store = outputs.chunks if outputs is not None else None
     done = _load_chunks(store, scene) if store else {}
     show = sys.stderr.isatty() if progress is None else progress
     cluster = None
@@ -91,7 +107,7 @@ def run(scene: Scene, executor: str = "local", out: str | Path | None = None, pr
                    for m0, n in todo if m0 not in done]
         with tqdm(total=scene.ensemble, initial=sum(n for m0, n in todo if m0 in done), unit="member",
                   desc=f"{scene.name}/{scene.method} on dask", disable=not show, file=sys.stderr) as bar:
-            for fut in as_completed(futures):
+            for fut in _finished(futures):
                 r = fut.result()
                 if r["member0"] not in done:  # a chunk is counted once, however often it ran
                     done[r["member0"]] = r
@@ -105,11 +121,25 @@ def run(scene: Scene, executor: str = "local", out: str | Path | None = None, pr
         client.close()
         if cluster is not None:
             cluster.close()
-    return _merge(scene, [done[m0] for m0, _ in todo], out, time.perf_counter() - wall0,
+    return _merge(scene, [done[m0] for m0, _ in todo], outputs, time.perf_counter() - wall0,
                   {"chunks": len(todo), "chunk_size": size, "retried": sorted(m for m, k in attempts.items() if k > 1)})
 
 
-def _merge(scene: Scene, parts: list[dict], out, wall: float, info: dict) -> sim.Result:
+def _finished(futures):
+    """The futures as they finish, looking for a stop signal twice a second (finished chunks are kept)."""
+    from distributed import wait
+
+    pending = set(futures)
+    while pending:
+        sim.check_stop(f" with {len(pending)} chunk(s) to go (the finished ones are kept for the next run)")
+        try:
+            done, pending = wait(pending, timeout=0.5, return_when="FIRST_COMPLETED")
+        except TimeoutError:
+            continue
+        yield from done
+
+
+def _merge(scene: Scene, parts: list[dict], outputs: Outputs | None, wall: float, info: dict) -> sim.Result:
     """Merge the chunks' accumulators in member order; per-step diagnostics are summed over members
     (``min_density`` is the minimum)."""
     hist = scene.histogram
@@ -125,8 +155,8 @@ def _merge(scene: Scene, parts: list[dict], out, wall: float, info: dict) -> sim
         diag[k] = v[0] if k == "time" else v.min(axis=0) if k == "min_density" else v.sum(axis=0)
     times = parts[0]["times"]
     path = None
-    if out is not None:
-        path = Path(out) / f"{scene.name}_{scene.method}.h5"
+    if outputs is not None:
+        path = outputs.run_file
         rf = RunFile(path, scene, hist[1] - hist[0] + 1 if hist else None)
         for t, row in zip(times, rows):
             rf.write_row(t, row)
@@ -149,14 +179,18 @@ def _save_chunk(store: Path, scene: Scene, r: dict) -> None:
 
 
 def _load_chunks(store: Path, scene: Scene) -> dict[int, dict]:
-    """Chunks a stopped run already finished (for this very scene)."""
+    """Chunks a stopped run already finished (for this very scene); an unreadable one is run again."""
     done = {}
     for path in sorted(store.glob("chunk_*.h5")):
-        with h5py.File(path) as f:
-            if not same_scene(f, scene):
-                raise ConfigError(f"{store} holds chunks of other scene settings: remove it or use another --out")
-            done[int(f.attrs["member0"])] = {
-                "member0": int(f.attrs["member0"]), "times": f["times"][()], "final_density": f["final_density"][()],
-                "rows": read_rows(f), "diagnostics": read_group(f["diagnostics"]),
-                "wall_time": float(f.attrs["wall_time"])}
+        try:
+            with h5py.File(path, "r") as f:
+                if not same_scene(f, scene):
+                    raise ConfigError(f"{store} holds chunks of other scene settings: remove it or use another --out")
+                done[int(f.attrs["member0"])] = {
+                    "member0": int(f.attrs["member0"]), "times": f["times"][()],
+                    "final_density": f["final_density"][()], "rows": read_rows(f),
+                    "diagnostics": read_group(f["diagnostics"]), "wall_time": float(f.attrs["wall_time"])}
+        except (OSError, KeyError) as exc:
+            print(f"ti_dk: warning: {path} is unreadable ({str(exc).splitlines()[0]}); running that chunk again",
+                  file=sys.stderr)
     return done

@@ -1,15 +1,22 @@
 """HDF5 record of a run: statistics rows, per-step diagnostics and provenance."""
 from __future__ import annotations
 
+import errno
+import fcntl
 import json
+import os
 import platform
+import re
 import time
 from contextlib import contextmanager
+from dataclasses import dataclass
 from importlib import metadata
 from pathlib import Path
 
 import h5py
 import numpy as np
+
+from .config import ConfigError
 
 STAT_KEYS = ("mean", "variance", "skewness", "kurtosis")
 
@@ -20,6 +27,117 @@ def package_version() -> str:
         return metadata.version("ti_dk")
     except metadata.PackageNotFoundError:  # a source tree that was never pip-installed
         return "unknown"
+
+
+class OutputError(RuntimeError):
+    """Output could not be written (disk full, permission, quota): one line, exit status 1."""
+
+
+def output_error(path: Path, exc: OSError) -> OutputError:
+    """The one-line message for an I/O failure on ``path``, saying what to change."""
+    why = {errno.ENOSPC: "the disk is full", errno.EDQUOT: "the disk quota is exceeded",
+           errno.EACCES: "permission denied", errno.EROFS: "the file system is read-only"}
+    code = exc.errno
+    if code is None:  # HDF5 reports the system error inside its message: "... errno = 28, ..."
+        found = re.search(r"errno = (\d+)", str(exc))
+        code = int(found.group(1)) if found else None
+    reason = why.get(code) or exc.strerror or str(exc).splitlines()[0]
+    return OutputError(f"cannot write {path}: {reason}; free space or use another --out")
+
+
+SPACE_RESERVE = 1 << 20  # bytes kept free on the output's file system (HDF5 metadata, the closing flush)
+
+
+def require_space(path: Path, nbytes: float) -> None:
+    """Raise ENOSPC *before* writing ``nbytes`` near ``path`` would leave less than ``SPACE_RESERVE``.
+
+    HDF5 cannot recover from a write that fails for want of space: its metadata cache retries the
+    flush forever and the process can crash when the file is released. Refusing the write first
+    keeps every file closable (and marked incomplete).
+    """
+    folder = path if path.is_dir() else path.parent
+    st = os.statvfs(folder)
+    if st.f_bavail * st.f_frsize < nbytes + SPACE_RESERVE:
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(path))
+
+
+@dataclass(frozen=True)
+class Outputs:
+    """Every path a run writes, named once and all inside ``out``.
+
+    ``run_file`` ``<out>/<name>_<method>.h5``, ``frames`` ``…_frames/``, ``snapshots``
+    ``…_openpmd/``, ``checkpoint`` ``…_checkpoint.h5``, ``chunks`` ``…_chunks/`` (Dask) and
+    ``lock`` ``….lock``: the file a run holds an exclusive lock on while it writes any of them.
+    """
+
+    out: Path
+    stem: str
+
+    @classmethod
+    def of(cls, out: str | Path, scene) -> "Outputs":
+        o = cls(Path(out), f"{scene.name}_{scene.method}")
+        for p in (o.run_file, o.frames, o.snapshots, o.checkpoint, o.chunks, o.lock):
+            if p.resolve().parent != o.out.resolve():  # the scene name is checked; this is the guarantee
+                raise ValueError(f"{p} would lie outside --out {out}")
+        return o
+
+    run_file = property(lambda self: self.out / f"{self.stem}.h5")
+    frames = property(lambda self: self.out / f"{self.stem}_frames")
+    snapshots = property(lambda self: self.out / f"{self.stem}_openpmd")
+    checkpoint = property(lambda self: self.out / f"{self.stem}_checkpoint.h5")
+    chunks = property(lambda self: self.out / f"{self.stem}_chunks")
+    lock = property(lambda self: self.out / f"{self.stem}.lock")
+    movie = property(lambda self: self.out / f"{self.stem}.mp4")
+
+    @contextmanager
+    def claim(self, overwrite: bool = False, fresh: bool = True):
+        """Hold the exclusive lock for the whole run; refuse a busy output or a complete result.
+
+        A second run on the same output is refused (:class:`ConfigError`), never allowed to touch
+        the first one's files; an existing complete result is replaced only with ``overwrite``. A
+        ``fresh`` run (not a restart) removes the frames and snapshots an earlier run left, so a
+        series never mixes two runs. The lock file stays (removing it could let two runs lock two
+        different files).
+        """
+        try:
+            self.out.mkdir(parents=True, exist_ok=True)
+            fd = os.open(self.lock, os.O_RDWR | os.O_CREAT, 0o644)
+        except OSError as exc:
+            raise ConfigError(f"--out {self.out}: cannot create it ({exc.strerror}); give a directory you can write")
+        try:
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                pid = os.pread(fd, 32, 0).decode(errors="replace").strip() or "?"
+                raise ConfigError(f"{self.run_file} is being written by another run (pid {pid}): wait for it to "
+                                "finish or give another --out") from None
+            os.ftruncate(fd, 0)
+            os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+            if not overwrite and is_complete(self.run_file):
+                raise ConfigError(f"{self.run_file} holds a complete result: add --overwrite to replace it, "
+                                "or give another --out")
+            if fresh:
+                self.clear_pictures()
+            yield self
+        finally:
+            os.close(fd)  # releases the lock
+
+    def clear_pictures(self) -> None:
+        """Remove the frames, movie and snapshots of an earlier run on this output."""
+        for folder, patterns in ((self.frames, ("frame_*.png",)), (self.snapshots, ("data*.h5",))):
+            for pattern in patterns:
+                for p in folder.glob(pattern):
+                    p.unlink(missing_ok=True)
+        self.movie.unlink(missing_ok=True)
+
+
+def is_complete(path: Path) -> bool:
+    """Whether ``path`` is a run file marked complete (False for a missing or unreadable one)."""
+    try:
+        with h5py.File(path, "r", locking=False) as f:
+            return bool(f.attrs.get("complete", False))
+    except (OSError, ValueError):
+        return False
 
 
 def versions() -> dict[str, str]:
@@ -44,6 +162,7 @@ class RunFile:
 
     def __init__(self, path: Path, scene, histogram_bins: int | None = None):
         path.parent.mkdir(parents=True, exist_ok=True)
+        require_space(path.parent, 64 << 10)
         self.h5 = h5py.File(path, "w")
         self.path = path
         a = self.h5.attrs
@@ -80,6 +199,7 @@ class RunFile:
         ds[n:] = rows
 
     def write_row(self, t: float, row: dict[str, np.ndarray]) -> None:
+        require_space(self.path, sum(np.asarray(v).nbytes for v in row.values()))
         st = self.h5["stats"]
         self._append(st["time"], [t])
         for k, v in row.items():
@@ -88,6 +208,7 @@ class RunFile:
         self.h5.flush()
 
     def write_diagnostics(self, diag: dict[str, list]) -> None:
+        require_space(self.path, 8 * sum(len(v) for v in diag.values()))
         for k, v in diag.items():
             if k not in self.diag:
                 self._grow(self.diag, k, (), np.asarray(v).dtype if len(v) else np.float64)
@@ -97,18 +218,29 @@ class RunFile:
     def write_table(self, name: str, records: list[dict]) -> None:
         """``/name/<key>``: one dataset per key of equal-keyed records (the hybrid's regrid log)."""
         if records:
+            require_space(self.path, 8 * len(records) * len(records[0]))
             g = self.h5.create_group(name)
             for k in records[0]:
                 g.create_dataset(k, data=np.array([r[k] for r in records]))
             self.h5.flush()
 
     def close(self, wall_time: float | None = None, error: str | None = None) -> None:
-        if wall_time is not None:
-            self.h5.attrs["wall_time"] = wall_time
-        if error is not None:
-            self.h5.attrs["error"] = error
-        self.h5.attrs["complete"] = error is None
-        self.h5.close()
+        """Close the file, marked complete only without ``error``; after an I/O error, as far as the
+        file system still allows (it stays marked incomplete, as it was created)."""
+        if not self.h5.id.valid:
+            return
+        try:
+            if wall_time is not None:
+                self.h5.attrs["wall_time"] = wall_time
+            if error is not None:
+                self.h5.attrs["error"] = error
+            self.h5.attrs["complete"] = error is None
+        finally:
+            try:
+                close_h5(self.h5)
+            except OSError:
+                if error is None:
+                    raise
 
 
 def scene_json(scene) -> str:
@@ -146,13 +278,27 @@ def atomic_h5(path: Path):
     """An HDF5 file written under a temporary name and renamed once whole; removed if interrupted,
     so whatever carries ``path`` is always complete."""
     tmp = path.with_suffix(path.suffix + ".tmp")
+    f = h5py.File(tmp, "w")
     try:
-        with h5py.File(tmp, "w") as f:
-            yield f
+        yield f
+        close_h5(f)
     except BaseException:
+        try:
+            close_h5(f)
+        except OSError:
+            pass
         tmp.unlink(missing_ok=True)
         raise
     tmp.replace(path)
+
+
+def close_h5(f) -> None:
+    """Close an HDF5 file; a write failure while flushing (disk full) is an OSError, not h5py's
+    RuntimeError, so that callers see every I/O failure as one kind of error."""
+    try:
+        f.close()
+    except RuntimeError as exc:
+        raise OSError(str(exc)) from None
 
 
 def _b(text: str) -> np.bytes_:
@@ -172,6 +318,7 @@ def write_openpmd(directory: Path, iteration: int, t: float, dt: float, grid, de
     """
     directory.mkdir(parents=True, exist_ok=True)
     path = directory / f"data{iteration:06d}.h5"
+    require_space(directory, 3 * density.nbytes + (0 if positions is None else 3 * positions.nbytes))
     d = grid.dim
     labels = [_b(a) for a in "xyz"[:d]]
     with atomic_h5(path) as f:

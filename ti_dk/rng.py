@@ -22,8 +22,16 @@ _W0, _W1 = 0x9E3779B9, 0xBB67AE85
 
 
 def seed_key(seed: int) -> tuple[int, int]:
-    """Split a 64-bit seed into the two 32-bit Philox key words."""
-    return seed & 0xFFFFFFFF, (seed >> 32) & 0xFFFFFFFF
+    """Split a 64-bit seed into the two 32-bit Philox key words.
+
+    Each word is returned as the signed 32-bit integer with the same bits: kernels bake the key in
+    as Python literals, which Taichi types as i32 (a word >= 2**31 failed to compile with "exceeded
+    the range of default_ip: i32") and ``ti.math.uvec2`` casts back to the same unsigned bits.
+    Seeds below 2**31 give exactly the words they always gave.
+    """
+    if not 0 <= seed < 2**64:
+        raise ValueError(f"seed {seed} is outside [0, 2**64)")
+    return tuple(w - 2**32 if w >= 2**31 else w for w in (seed & 0xFFFFFFFF, seed >> 32))
 
 
 @ti.func

@@ -1,12 +1,16 @@
 """The run controller: Taichi start-up, the time loop, statistics cadence, output and diagnostics."""
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import dataclasses
+import io
 import json
 import math
 import os
+import signal
 import sys
+import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -16,15 +20,18 @@ import numpy as np
 import taichi as ti
 from tqdm import tqdm
 
-from .config import ConfigError, Scene
+from .config import ConfigError, Scene, check_options
 from .fv import SPDESolver
 from .grid import Grid
 from .hybrid import HybridSolver
 from .io import (
+    Outputs,
     RunFile,
     atomic_h5,
+    output_error,
     read_group,
     read_rows,
+    require_space,
     same_scene,
     scene_json,
     write_group,
@@ -35,10 +42,61 @@ from .particles import ParticleSolver
 from .stats import CellStats
 
 ARCHS = {"cpu": ti.cpu, "cuda": ti.cuda}
+FLUSH_SECONDS = 5.0  # per-step diagnostics reach the file at least this often (and at every checkpoint)
 
 
 class SimulationError(RuntimeError):
     """The run went wrong in a way the user can fix (unstable scheme, too many particles)."""
+
+
+class Stopped(SimulationError):
+    """SIGTERM or SIGINT arrived: the run stopped between two steps, its output closed and marked
+    incomplete. ``status``: the exit status a shell gives for that signal (143, 130)."""
+
+    def __init__(self, message: str, status: int):
+        super().__init__(message)
+        self.status = status
+
+
+_STOP: dict = {"signal": None}  # set by the handlers of stop_on_signals(), read between steps
+
+
+@contextlib.contextmanager
+def stop_on_signals():
+    """SIGTERM and SIGINT set a flag that the run checks between steps (and after Taichi's start and
+    the kernels' compilation), instead of raising wherever Python happens to be; handlers restored after."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    def handler(signum, frame):
+        if _STOP["signal"] is not None:  # asked twice: stop at once, the default way
+            signal.signal(signum, signal.SIG_DFL)
+            os.kill(os.getpid(), signum)
+        _STOP["signal"] = signum
+
+    _STOP["signal"] = None
+    old = {s: signal.signal(s, handler) for s in (signal.SIGTERM, signal.SIGINT)}
+    try:
+        yield
+    finally:
+        for s, h in old.items():
+            signal.signal(s, h)
+        _STOP["signal"] = None
+
+
+def check_stop(where: str = " before the first step", rf=None, checkpoint: Path | None = None) -> None:
+    """Raise :class:`Stopped` if a signal arrived: ``rf`` closed and marked incomplete with the reason,
+    and the message names the latest checkpoint only if there is one."""
+    signum = _STOP["signal"]
+    if signum is None:
+        return
+    name = signal.Signals(signum).name
+    if rf is not None:
+        rf.close(error=f"stopped by {name}{where}")
+    msg = f"stopped by {name}{where}"
+    msg += f"; {rf.path} is marked incomplete" if rf is not None else ""
+    msg += f"; resume with --restart {checkpoint}" if checkpoint is not None else ""
+    raise Stopped(msg, 128 + signum)
 
 
 def init(arch: str = "cpu", threads: int | None = None) -> None:
@@ -53,7 +111,8 @@ def init(arch: str = "cpu", threads: int | None = None) -> None:
     if arch == "cuda" and not _cuda_driver_present():
         raise ConfigError("the 'cuda' backend is not available on this machine (no CUDA driver): run with --arch cpu")
     kw = {"cpu_max_num_threads": threads} if threads else {}
-    ti.init(arch=ARCHS[arch], default_fp=ti.f64, offline_cache=True, log_level=ti.WARN, **kw)
+    with contextlib.redirect_stdout(io.StringIO()):  # ti.init prints "[Taichi] Starting on arch=..." unasked
+        ti.init(arch=ARCHS[arch], default_fp=ti.f64, offline_cache=True, log_level=ti.WARN, **kw)
     if ti.lang.impl.current_cfg().arch != ARCHS[arch]:
         raise ConfigError(f"the '{arch}' backend is not available on this machine: run with --arch cpu")
 
@@ -108,13 +167,7 @@ def make_solver(scene: Scene, ppc: np.ndarray, member0: int = 0):
     real = ti.f32 if scene.precision == "f32" else ti.f64
     common = dict(grid=grid, dt=scene.dt, ensemble=scene.ensemble, seed=scene.seed, real=real, member0=member0)
     if scene.method == "particle":
-        capacity = ParticleSolver.capacity_for(grid, ppc)
-        need = capacity * scene.ensemble * (scene.dim + 1) * (4 if scene.precision == "f32" else 8)
-        have = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
-        if need > 0.5 * have:
-            raise SimulationError(
-                f"the particle method needs {need / 2**30:.3g} GiB for {capacity:,} particles x {scene.ensemble} "
-                f"members ({have / 2**30:.3g} GiB here): lower ppc or the ensemble, or use fv or hybrid")
+        capacity = ParticleSolver.capacity_for(grid, ppc)  # its memory was checked with the scene
         solver = ParticleSolver(capacity=capacity, **common)
         solver.initialize(ppc, exact_uniform=scene.particle_init == "exact_uniform")
         return solver
@@ -144,7 +197,7 @@ class _Progress:
 def run(scene: Scene, out: str | Path | None = None, progress: bool | None = None,
         arch: str = "cpu", threads: int | None = None, *, frames: bool | None = None, movie: bool = False,
         snapshots: bool | None = None, checkpoint_every: int = 0, restart: str | Path | None = None,
-        member0: int = 0) -> Result:
+        member0: int = 0, overwrite: bool = False) -> Result:
     """Run a scene; return its statistics and, with ``out``, write its files there.
 
     Rows are taken at ``scene.output_steps`` over the ensemble; a stationary scene (``t_equil``
@@ -156,9 +209,30 @@ def run(scene: Scene, out: str | Path | None = None, progress: bool | None = Non
     ``checkpoint_every`` K writes ``<scene>_<method>_checkpoint.h5`` every K steps (atomically);
     ``restart`` continues from such a file, bit for bit as if never interrupted. ``member0``: the
     global index of the first member (a chunk of a larger ensemble, see :mod:`ti_dk.ensemble`).
+
+    Every path lies inside ``out`` (:class:`ti_dk.io.Outputs`); the run holds an exclusive lock on
+    it, so a second run there is refused, and replaces a complete result only with ``overwrite``.
+    A signal seen by :func:`stop_on_signals` stops it between steps (:class:`Stopped`); an I/O
+    failure raises :class:`ti_dk.io.OutputError`; both leave the file marked incomplete.
     """
+    check_options(scene, out=out, threads=threads, checkpoint_every=checkpoint_every, restart=restart, movie=movie)
+    if out is None:
+        return _run(scene, None, progress, arch, threads, frames, movie, snapshots, checkpoint_every, restart, member0)
+    outputs = Outputs.of(out, scene)
+    with outputs.claim(overwrite, fresh=restart is None):
+        try:
+            return _run(scene, outputs, progress, arch, threads, frames, movie, snapshots, checkpoint_every, restart,
+                        member0)
+        except OSError as exc:  # disk full, quota, permission: the run file is already closed
+            raise output_error(outputs.out, exc) from None
+
+
+def _run(scene: Scene, outputs_: Outputs | None, progress, arch, threads, frames, movie, snapshots, checkpoint_every,
+         restart, member0) -> Result:
+    """The time loop of :func:`run`, on checked options and a claimed output."""
     if not _initialized():
         init(arch, threads)
+    check_stop()
     wall0 = time.perf_counter()
     ppc = scene.initial_ppc
     try:
@@ -169,22 +243,21 @@ def run(scene: Scene, out: str | Path | None = None, progress: bool | None = Non
     prog = _Progress()
     if restart is not None:
         prog = _read_checkpoint(Path(restart), scene, solver, other)
-    frames = out is not None and (frames is not False or movie)
-    snapshots = out is not None and scene.dim >= 2 and snapshots is not False  # snapshots: 2D and 3D
-    base = Path(out) / f"{scene.name}_{scene.method}" if out is not None else None
+    frames = outputs_ is not None and (frames is not False or movie)  # 1D: moment profiles
+    snapshots = outputs_ is not None and scene.dim >= 2 and snapshots is not False  # snapshots: 2D and 3D
     hist = scene.histogram
-    rf = RunFile(base.with_suffix(".h5"), scene, hist[1] - hist[0] + 1 if hist else None) if base else None
+    rf = RunFile(outputs_.run_file, scene, hist[1] - hist[0] + 1 if hist else None) if outputs_ else None
     if rf:  # a restarted run writes what the checkpoint holds first: the file ends up the same
         for t, row in zip(prog.times, prog.rows):
             rf.write_row(t, row)
-        rf.write_diagnostics(prog.diag)
-    flushed = len(prog.diag["time"])
+    sink = _DiagnosticsSink(rf, prog.diag)
+    sink.flush(force=True)
     writer = None
     written = {"statistics and diagnostics": rf.path} if rf else {}
     if frames:
         from .render import FrameWriter
 
-        writer = FrameWriter(base.parent / f"{base.name}_frames", _renderer(scene, ppc, other))
+        writer = FrameWriter(outputs_.frames, _renderer(scene, ppc, other))
         writer.files = [writer.dir / f"frame_{k:04d}.png" for k in range(len(prog.frames["time"]))]
         written["frames"] = writer.dir
     stationary = scene.t_equil is not None
@@ -207,7 +280,6 @@ def run(scene: Scene, out: str | Path | None = None, progress: bool | None = Non
         return t1
 
     def record(n: int) -> None:
-        nonlocal flushed
         t0 = time.perf_counter()
         t = n * scene.dt
         if stationary:
@@ -236,20 +308,20 @@ def run(scene: Scene, out: str | Path | None = None, progress: bool | None = Non
                 prog.frames.setdefault("compare_negative_cells", []).append(int((panels[1].ppc < 0).sum()))
             t0 = clock("render", t0)
         if snapshots and n in outputs:
-            _snapshot(base, n, scene, solver)
+            _snapshot(outputs_.snapshots, n, scene, solver)
         if row is not None and n in outputs:
             prog.rows.append(row)
             prog.times.append(t)
             if rf:
                 rf.write_row(t, row)
-                rf.write_diagnostics({k: v[flushed:] for k, v in prog.diag.items()})
-                flushed = len(prog.diag["time"])
+        sink.flush(force=row is not None)
         clock("io", t0)
 
     show = sys.stderr.isatty() if progress is None else progress
-    ckpt = base.parent / f"{base.name}_checkpoint.h5" if base and checkpoint_every else None
+    ckpt = outputs_.checkpoint if outputs_ and checkpoint_every else None
+    latest = Path(restart) if restart is not None else None  # the checkpoint a stopped run can resume from
     if snapshots:
-        written["openPMD snapshots"] = base.parent / f"{base.name}_openpmd"
+        written["openPMD snapshots"] = outputs_.snapshots
     if ckpt:
         written["checkpoint"] = ckpt
     clock("setup", wall0)  # solvers built and initialised (their kernels compiled), checkpoint read
@@ -261,6 +333,7 @@ def run(scene: Scene, out: str | Path | None = None, progress: bool | None = Non
                   desc=f"{label}: compiling", file=sys.stderr, mininterval=0.5) as bar:
             first = True  # the first step compiles the step kernels: timed as "compile", not in the ETA
             for n in range(prog.step, scene.n_steps):
+                check_stop(f" at step {n} of {scene.n_steps}", rf, latest)
                 t0 = time.perf_counter()
                 if first:
                     before, t_first = _parts(timing, solver), t0
@@ -285,6 +358,8 @@ def run(scene: Scene, out: str | Path | None = None, progress: bool | None = Non
                     t0 = time.perf_counter()
                     prog.pooled = pooled.state() if stationary else None
                     _write_checkpoint(ckpt, scene, solver, other, prog)
+                    latest = ckpt
+                    sink.flush(force=True)
                     clock("io", t0)
                 if not first:
                     bar.update()
@@ -299,7 +374,7 @@ def run(scene: Scene, out: str | Path | None = None, progress: bool | None = Non
                     bar.refresh()
         if movie and writer:
             t0 = time.perf_counter()
-            written["movie"] = writer.movie(base.parent / f"{base.name}.mp4")
+            written["movie"] = writer.movie(outputs_.movie)
             clock("render", t0)
     except OverflowError as exc:
         if rf:
@@ -307,7 +382,7 @@ def run(scene: Scene, out: str | Path | None = None, progress: bool | None = Non
         raise SimulationError(str(exc)) from None
     except BaseException as exc:
         if rf:
-            rf.close(time.perf_counter() - wall0, error=f"{type(exc).__name__}: {exc}")
+            _close_quietly(rf, time.perf_counter() - wall0, f"{type(exc).__name__}: {exc}")
         raise
     wall = time.perf_counter() - wall0
     if hasattr(solver, "timing"):  # the hybrid splits its step into SPDE, particles and regrid
@@ -401,6 +476,31 @@ def summary(result: Result) -> str:
     return "\n".join(lines)
 
 
+class _DiagnosticsSink:
+    """Per-step diagnostics on their way to the run file: written with every statistics row, at
+    every checkpoint and at least every ``FLUSH_SECONDS``, so a killed run keeps them up to then."""
+
+    def __init__(self, rf: RunFile | None, diag: dict):
+        self.rf, self.diag, self.done, self.last = rf, diag, 0, time.monotonic()
+
+    def flush(self, force: bool = False) -> None:
+        if self.rf is None or not (force or time.monotonic() - self.last > FLUSH_SECONDS):
+            return
+        n = len(self.diag["time"])
+        if n > self.done:
+            self.rf.write_diagnostics({k: v[self.done:] for k, v in self.diag.items()})
+        self.done, self.last = n, time.monotonic()
+
+
+def _close_quietly(rf: RunFile, wall: float, error: str) -> None:
+    """Mark ``rf`` incomplete on the way out of a failed run; a second failure (the disk still full)
+    must not hide the first."""
+    try:
+        rf.close(wall, error=error)
+    except OSError:
+        pass
+
+
 def stats_of(rows: list[dict], hist: tuple[int, int] | None) -> Stats:
     """The rows stacked along time."""
     stack = {k: np.stack([r[k] for r in rows]) for k in rows[0] if not k.startswith("acc_")}
@@ -420,7 +520,7 @@ def _panels(scene: Scene, solver, other) -> list:
     return panels
 
 
-def _snapshot(base: Path, n: int, scene: Scene, solver) -> None:
+def _snapshot(directory: Path, n: int, scene: Scene, solver) -> None:
     """openPMD snapshot of member 0 at step ``n`` (the hybrid adds its region, particles and boxes)."""
     region = positions = ids = boxes = None
     if isinstance(solver, HybridSolver):
@@ -430,19 +530,20 @@ def _snapshot(base: Path, n: int, scene: Scene, solver) -> None:
         positions = st["x"][0, :k]
         ids = (st["pid"][0, :k, 0].astype(np.uint64) << np.uint64(32)) | st["pid"][0, :k, 1].astype(np.uint64)
         boxes = np.array([(*lo, *hi) for lo, hi in solver.boxes[0]], dtype=np.int64).reshape(-1, 2 * scene.dim)
-    write_openpmd(base.parent / f"{base.name}_openpmd", n, n * scene.dt, scene.dt, scene.grid,
+    write_openpmd(directory, n, n * scene.dt, scene.dt, scene.grid,
                   solver.density()[0], region, positions, ids, boxes)
 
 
 def _write_checkpoint(path: Path, scene: Scene, solver, other, prog: _Progress) -> None:
     """Everything needed to resume at ``prog.step``; written to a temporary name, then renamed."""
+    states = {name: s.state() for name, s in (("solver", solver), ("compare", other)) if s is not None}
+    require_space(path, sum(v.nbytes for st in states.values() for v in st.values()))
     with atomic_h5(path) as f:  # interrupted (SIGTERM): the previous checkpoint stays the latest
         f.attrs["scene"] = scene_json(scene)
         f.attrs["step"] = prog.step
         f.attrs["timing"] = json.dumps(prog.timing | ({"hybrid": solver.timing} if hasattr(solver, "timing") else {}))
-        for name, s in (("solver", solver), ("compare", other)):
-            if s is not None:
-                write_group(f, name, s.state())
+        for name, st in states.items():
+            write_group(f, name, st)
         f.create_dataset("times", data=np.array(prog.times, dtype=np.float64))
         write_rows(f, prog.rows)
         write_group(f, "diag", prog.diag)
@@ -451,24 +552,121 @@ def _write_checkpoint(path: Path, scene: Scene, solver, other, prog: _Progress) 
 
 
 def _read_checkpoint(path: Path, scene: Scene, solver, other) -> _Progress:
-    if not path.exists():
-        raise ConfigError(f"--restart {path}: no such checkpoint")
+    """The progress a checkpoint holds, loaded into the solvers after :func:`_checkpoint_problem`
+    found nothing wrong with it; anything else is refused with one line."""
+    damaged = f"--restart {path}: damaged checkpoint"
     try:
         f = h5py.File(path, "r")
     except OSError as exc:
-        raise ConfigError(f"--restart {path}: not a readable checkpoint ({exc})") from None
+        raise ConfigError(f"--restart {path}: not a readable checkpoint ({str(exc).splitlines()[0]}); give a file "
+                          "written by --checkpoint-every") from None
     with f:
-        if not same_scene(f, scene):
-            raise ConfigError(f"--restart {path}: the checkpoint was written for other scene settings; "
-                              "restart with the same scene, method and --set values")
-        solver.load_state(read_group(f["solver"]))
-        if other is not None:
-            other.load_state(read_group(f["compare"]))
-        timing = json.loads(f.attrs["timing"])
-        if "hybrid" in timing:
-            solver.timing = timing.pop("hybrid")
-        prog = _Progress(step=int(f.attrs["step"]), times=list(f["times"][()]), timing=timing, rows=read_rows(f),
-                         diag={k: list(v) for k, v in read_group(f["diag"]).items()},
-                         frames={k: list(v) for k, v in read_group(f["frames"]).items()},
-                         pooled=read_group(f["pooled"]) or None if "pooled" in f else None)
+        try:
+            if "scene" not in f.attrs or "step" not in f.attrs:
+                raise ConfigError(f"--restart {path}: not a ti_dk checkpoint; give a file written by --checkpoint-every")
+            if not same_scene(f, scene):
+                raise ConfigError(f"--restart {path}: the checkpoint was written for other scene settings; "
+                                  "restart with the same scene, method and --set values")
+            states = {name: read_group(f[name]) for name in ("solver", "compare") if name in f}
+            timing = json.loads(f.attrs["timing"])
+            prog = _Progress(step=int(f.attrs["step"]), times=list(f["times"][()]), timing=timing, rows=read_rows(f),
+                             diag={k: list(v) for k, v in read_group(f["diag"]).items()},
+                             frames={k: list(v) for k, v in read_group(f["frames"]).items()},
+                             pooled=read_group(f["pooled"]) or None if "pooled" in f else None)
+        except (KeyError, ValueError, TypeError, OSError) as exc:
+            if isinstance(exc, ConfigError):
+                raise
+            raise ConfigError(f"{damaged} ({str(exc).splitlines()[0] if str(exc) else type(exc).__name__}); "
+                              "restart from another checkpoint or from the start") from None
+    try:
+        problem = _checkpoint_problem(scene, prog, states, {"solver": solver, "compare": other})
+    except (KeyError, IndexError, ValueError) as exc:  # a table missing or cut short
+        problem = f"{type(exc).__name__} {exc}"
+    if problem:
+        raise ConfigError(f"{damaged}: {problem}; restart from another checkpoint or from the start")
+    solver.load_state(states["solver"])
+    if other is not None:
+        other.load_state(states["compare"])
+    if "hybrid" in prog.timing:
+        solver.timing = prog.timing.pop("hybrid")
     return prog
+
+
+_VARIABLE = ("x", "pid", "boxes")  # hybrid state whose length changes with the particles (and regrid_*)
+
+
+def _checkpoint_problem(scene: Scene, prog: _Progress, states: dict, solvers: dict) -> str | None:
+    """What is wrong with a checkpoint's content, or None: step and row counts, the state's keys,
+    shapes and types (against a fresh solver's), finite values, particles inside the domain and,
+    for the hybrid, in their region, and the mass the state holds against the diagnostics."""
+    step, n = prog.step, scene.n_steps
+    missing = {"time", "mass"} - set(prog.diag)
+    if missing:
+        return f"its diagnostics lack {', '.join(sorted(missing))}"
+    if not 0 < step < n:
+        return f"step {step} is outside 1 … {n - 1}"
+    if any(len(v) != step for v in prog.diag.values()) or not math.isclose(prog.diag["time"][-1], step * scene.dt,
+                                                                           rel_tol=1e-9):
+        return f"its per-step diagnostics do not end at step {step}"
+    rows = 0 if scene.t_equil is not None else sum(1 for s in scene.output_steps if s <= step)
+    if len(prog.rows) != rows or len(prog.times) != rows:
+        return f"it holds {len(prog.rows)} statistics rows where step {step} has {rows}"
+    for name, solver in solvers.items():
+        if solver is None:
+            continue
+        if name not in states:
+            return f"the {name} state is missing"
+        st, fresh = states[name], solver.state()
+        if set(st) != set(fresh):
+            return f"the {name} state has keys {sorted(st)}, not {sorted(fresh)}"
+        for k, v in st.items():
+            variable = k in _VARIABLE or k.startswith("regrid_")
+            if v.dtype != fresh[k].dtype or (v.shape != fresh[k].shape if not variable else v.ndim != fresh[k].ndim):
+                return f"{name}/{k} has shape {v.shape} {v.dtype}, not {fresh[k].shape} {fresh[k].dtype}"
+            if v.dtype.kind == "f" and not k.startswith("regrid_") and not np.isfinite(v).all():
+                return f"{name}/{k} holds NaN or infinite values"
+        problem = _state_problem(scene, name, st, solver, prog.diag)
+        if problem:
+            return problem
+    return None
+
+
+def _state_problem(scene: Scene, name: str, st: dict, solver, diag: dict) -> str | None:
+    """Particles inside the domain (and the hybrid's region), and the mass against the diagnostics."""
+    vol, lengths = scene.cell_volume, np.array(scene.lengths)
+    counts = st.get("n_alive", st.get("n_real"))
+    if counts is not None:
+        x = st["x"]
+        if counts.shape != (scene.ensemble,) or counts.min() < 0 or counts.max() > x.shape[-2]:
+            return f"{name}: particle counts {counts.tolist()[:4]} do not fit its {x.shape[-2]} slots"
+        live = np.arange(x.shape[-2])[None, :] < counts[:, None]
+        pos = x[live]
+        if pos.size and ((pos < 0).any() or (pos >= lengths).any()):
+            return f"{name}: particles lie outside the domain [0, {list(scene.lengths)})"
+    prefix = "" if name == "solver" else "compare_"
+    if "n_alive" in st:
+        mass = float(counts.sum())
+    else:
+        q = st["spde_q" if "spde_q" in st else "q"]
+        mass = float(q.astype(np.float64).sum() * vol)
+    if "n_real" in st:  # hybrid: covered cells hold exactly their particles, and the boxes cover the region
+        cells = np.minimum((pos / np.array(scene.dx)).astype(np.int64), np.array(scene.cells) - 1)
+        member = np.nonzero(live)[0]
+        covered = st["covered"].astype(bool)
+        if pos.size and not covered[(member, *cells.T)].all():
+            return f"{name}: particles lie outside the particle region"
+        count = np.zeros(covered.shape)
+        np.add.at(count, (member, *cells.T), 1)
+        if not np.allclose((st["spde_q"] * vol)[covered], count[covered], rtol=1e-6, atol=1e-6):
+            return f"{name}: the densities of the particle region differ from its particle counts"
+        region = np.zeros_like(covered)
+        for e, *b in st["boxes"]:
+            d = scene.dim
+            region[(e, *(slice(lo, hi) for lo, hi in zip(b[:d], b[d:])))] = True
+        if not np.array_equal(region, covered):
+            return f"{name}: the particle region differs from its boxes"
+    want = float(diag[prefix + "mass"][-1])
+    tol = 1e-5 if scene.precision == "f32" else 1e-9
+    if not math.isclose(mass, want, rel_tol=tol, abs_tol=tol):
+        return f"{name}: its state holds {mass:.10g} particles where the diagnostics say {want:.10g}"
+    return None
