@@ -184,6 +184,8 @@ class Scene:
                                  lo=0.0, hi=1.0, above=True)
     min_box: int = key("int", "hybrid: smallest box side in cells", _RG.min_box, lo=1)
     max_box: int = key("int", "hybrid: largest box side in cells", _RG.max_box, lo=1)
+    regrid_floor: float = key("real", "hybrid: cover uncovered cells below this times threshold before any step "
+                              "(0: scheduled regrids only)", _RG.floor, lo=0.0, hi=1.0)
     allow_unstable: bool = key("bool", "accept C beyond the explicit stability limit (experiments)", False)
     description: str = key("text", "a line saying what the scene is", "")
 
@@ -233,7 +235,7 @@ class Scene:
     @property
     def regrid(self) -> RegridParams:
         return RegridParams(threshold=self.threshold, buffer=self.buffer, efficiency=self.grid_efficiency,
-                            min_box=self.min_box, max_box=self.max_box)
+                            min_box=self.min_box, max_box=self.max_box, floor=self.regrid_floor)
 
     @property
     def initial_ppc(self) -> np.ndarray:

@@ -18,7 +18,6 @@ REGRID_BIRTH = HYBRID_STEP_LIMIT  # flag in the birth word of particles sampled 
 TOO_MANY = 2**31 - 1  # `need` when a cell asked for more particles than an id can number
 # one record per regrid; on_demand: members regridded off schedule (0: a scheduled regrid of all)
 REGRID_LOG = ("step", "boxes", "covered_cells", "efficiency", "created", "removed", "on_demand")
-FLOOR = 1.0  # an uncovered cell below FLOOR · threshold particles is covered before the next step
 
 
 def _clock() -> float:
@@ -139,7 +138,7 @@ class HybridSolver:
             t = _clock()
             if n % self.regrid_interval == 0:
                 self.regrid(n)
-            elif self._mark_low(FLOOR * self.params.threshold):
+            elif self.params.floor > 0 and self._mark_low(self.params.floor * self.params.threshold):
                 self.extend(n)
             self.timing["regrid"] += _clock() - t
         t0 = _clock()
@@ -209,13 +208,12 @@ class HybridSolver:
         clustered by Berger–Rigoutsos) and keep the rest of the region: the on-demand regrid.
 
         Tagging promises that no uncovered cell holds fewer than ``threshold`` particles; between
-        scheduled regrids that promise breaks, and then FV goes negative (one 2D step at C = 1/16
-        moves about √N/2 particles) and so does a ghost cell that holds ``ℓ + α`` particles and
-        sends ``ℓ + 1`` ghosts with probability α, which can all walk in. Keeping the promise at
-        every step cut the negative cell-steps of the default ellipse2d run from 47 to 6 (and
-        from 3 to 0 in a 200-member 48² ensemble). The 6 left are ghost cells holding 5–8
-        particles all of whose ghosts walked in (about 2e-6 per ghost-cell step): positivity
-        always needs a cap on ghost entries at the content the SPDE leaves (not done yet).
+        scheduled regrids that promise breaks, and FV then goes negative (one 2D step at C = 1/16
+        moves about √N/2 particles). Keeping it at every step (``regrid_floor = 1``) together with
+        the ghost-entry cap of :meth:`_cap_entries` cut the negative cell-steps of the default
+        ellipse2d run from 47 to 1 (an FV step of 4.7 σ from 5.6 particles); the cap alone to 8.
+        The price is an extension on most steps of that run (about 2× its time): ``regrid_floor``
+        is the knob.
         """
         ppc = self.spde.density() * self.grid.cell_volume
         masks = self.region()

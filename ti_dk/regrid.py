@@ -22,7 +22,9 @@ class RegridParams:
     ``threshold``: tag cells holding fewer particles than this (and every negative cell);
     ``buffer``: grow the tags by this many cells (Chebyshev distance, across periodic sides);
     ``efficiency``: smallest accepted fraction of tagged cells in a box;
-    ``min_box`` / ``max_box``: box side limits in cells.
+    ``min_box`` / ``max_box``: box side limits in cells;
+    ``floor``: between scheduled regrids, uncovered cells below ``floor · threshold`` particles are
+    covered before the next step (0: scheduled regrids only; see ``HybridSolver.extend``).
     """
 
     threshold: float = 5.0
@@ -30,6 +32,7 @@ class RegridParams:
     efficiency: float = 0.7
     min_box: int = 2
     max_box: int = 32
+    floor: float = 1.0
 
 
 def tag(ppc: np.ndarray, threshold: float) -> np.ndarray:
