@@ -55,15 +55,18 @@ def void_settings() -> list[Setting]:
           for m in ("fv", "hybrid") for c in (0.02, 0.125, 0.2)]
     s += [Setting(f"{m} f32", {"method": m, "precision": "f32", **({"regrid_interval": 0} if m == "hybrid" else {})})
           for m in ("fv", "hybrid")]
-    s += [Setting("hybrid uniform ghosts (paper)", {"method": "hybrid", "regrid_interval": 0,
-                                                     "ghost_profile": "uniform"})]
+    s += [Setting(f"hybrid {g} ghosts{' (paper)' if g == 'uniform' else ''}",
+                  {"method": "hybrid", "regrid_interval": 0, "ghost_profile": g}) for g in ("uniform", "linear")]
+    s += [Setting(f"hybrid C=0.2 sub-steps {k}", {"method": "hybrid", "C": 0.2, "regrid_interval": 0,
+                                                  "particle_substeps": k}) for k in (2, 4)]
     return s
 
 
 def ellipse_settings() -> list[Setting]:
     s = [Setting("fv", {"method": "fv"}), Setting("gaussian", {"method": "gaussian"}),
          Setting("particle", {"method": "particle"})]
-    return s + [Setting(f"hybrid threshold {t:g}", {"method": "hybrid", "threshold": t}) for t in (1, 2, 5, 10, 20)]
+    s += [Setting(f"hybrid threshold {t:g}", {"method": "hybrid", "threshold": t}) for t in (1, 2, 5, 10, 20)]
+    return s + [Setting("hybrid regrid_floor 0", {"method": "hybrid", "regrid_floor": 0.0})]
 
 
 def void_error(res: Run | ti_dk.Result) -> dict[str, float]:

@@ -23,7 +23,8 @@ def test_geometry_in_1d_and_3d():
     g1 = Grid.from_scene(load_scene("void1d", cells=[40], lengths=[2.0]))
     assert g1.dim == 1 and g1.cell_volume == pytest.approx(0.05) and g1.face_area == pytest.approx((1.0,))
     assert not g1.has_dirichlet and g1.reservoir_ppc_max == 0
-    g3 = Grid.from_scene(load_scene("sphere3d", cells=[2, 4, 8], lengths=[1.0, 2.0, 4.0], method="fv", compare="none"))
+    g3 = Grid.from_scene(load_scene("sphere3d", cells=[2, 4, 8], lengths=[1.0, 2.0, 4.0], method="fv", compare="none",
+                                    t_end=0.1))
     assert g3.dx == pytest.approx((0.5, 0.5, 0.5)) and g3.cell_volume == pytest.approx(0.125)
     assert g3.face_area == pytest.approx((0.25, 0.25, 0.25))
     assert np.prod(g3.cells) * g3.cell_volume == pytest.approx(np.prod(g3.lengths))
