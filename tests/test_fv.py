@@ -29,7 +29,7 @@ def _count_variance(cells, lengths, ppc, C, steps, members, gaussian, real=ti.f6
 
 @pytest.mark.parametrize(
     "cells, lengths, members, real",
-    [((100,), None, 2000, ti.f64), ((100,), None, 2000, ti.f32), ((16, 24), [1.0, 2.0], 400, ti.f64),
+    [((100,), None, 2000, ti.f64), ((100,), None, 2000, ti.f32), ((16, 24), [1.0, 2.0], 800, ti.f64),
      ((8, 8, 8), None, 300, ti.f64)],
     ids=["1d", "1d-f32", "2d-anisotropic", "3d"],
 )

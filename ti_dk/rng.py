@@ -11,7 +11,7 @@ P. J. Acklam's rational approximation of the inverse normal CDF (relative error 
 import taichi as ti
 
 # purposes: the fourth counter word, so that streams for different uses never overlap
-FACE_NOISE = 0  # one counter per cell; word a is the noise on the cell's lower face along axis a
+FACE_NOISE = 0  # one counter per group of 4 // dim cells along the last axis; word g·dim + a: lower face along a of cell g
 WALK = 1  # one counter per particle and step; word a is the step along axis a
 SAMPLE_COUNT = 2  # Bernoulli draw for the fractional particle of a cell
 SAMPLE_POSITION = 3  # uniform position of a sampled particle
