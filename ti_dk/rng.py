@@ -12,7 +12,7 @@ import taichi as ti
 
 # purposes: the fourth counter word, so that streams for different uses never overlap
 FACE_NOISE = 0  # one counter per group of 4 // dim cells along the last axis; word g·dim + a: lower face along a of cell g
-WALK = 1  # one counter per particle and step; word a is the step along axis a
+WALK = 1  # one counter per group of 4 // dim particle ids and step; word (id0 mod G)·dim + a: step along a
 SAMPLE_COUNT = 2  # Bernoulli draw for the fractional particle of a cell
 SAMPLE_POSITION = 3  # uniform position of a sampled particle
 PURPOSE_BITS = 4  # the purpose occupies the low bits of word 3; the rest is free for callers
