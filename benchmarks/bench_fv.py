@@ -68,6 +68,7 @@ def numpy_rate(cells, real, reps):
 
 
 def normal_ceiling(real, n=1 << 23):
+    rng.prepare()
     out = ti.field(real, shape=n)
 
     @ti.kernel

@@ -42,6 +42,7 @@ class SPDESolver:
         self.dim = grid.dim
         self.n = grid.cells
         self.key = rng.seed_key(seed)
+        rng.prepare()
         self.group = max(1, 4 // self.dim)  # cells along the last axis sharing one Philox counter
         # counter groups per member: the last axis of the padded face grid cut into groups of `group`
         self.groups = (*self.n[:-1], -(-self.n[-1] // self.group))

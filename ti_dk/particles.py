@@ -32,6 +32,7 @@ class Walker:
         self.dim = grid.dim
         self.group = max(1, 4 // self.dim)  # consecutive identities sharing one Philox counter
         self.key = rng.seed_key(seed)
+        rng.prepare()
 
     @ti.func
     def bits(self, e, id0, birth, step):
