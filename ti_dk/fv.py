@@ -76,9 +76,12 @@ class SPDESolver:
 
     def step(self, n: int) -> None:
         """Advance all members from step ``n`` to ``n + 1``."""
-        self._fluxes(n)
-        self._update()
-        self._diagnose()
+        if self.dim == 1 and not self.gaussian:
+            self._step_members(n)
+        else:
+            self._fluxes(n)
+            self._update()
+            self._diagnose()
 
     def state(self) -> dict[str, np.ndarray]:
         """The fields a checkpoint needs to continue bit for bit."""
@@ -232,6 +235,42 @@ class SPDESolver:
         if ti.static(self.gaussian):
             for J in ti.grouped(self.qbar):
                 self.qbar[J] += self.real(self.dt) * self._divergence(self.flux_bar, J)
+
+    @ti.kernel
+    def _step_members(self, step: ti.u32):
+        """The 1D finite-volume step (:meth:`_fluxes`, :meth:`_update`, :meth:`_diagnose`) one member
+        at a time: a member's cells, faces and roots stay in the first-level cache through its
+        four passes, and its diagnostics are summed locally with one atomic per member (not per
+        cell). The same face functions give the same bits as the three-kernel step."""
+        n, G = ti.static(self.n[0], self.group)
+        vol = ti.static(self.grid.cell_volume)
+        self.inflow[None] = 0.0
+        self.mass[None] = 0.0
+        self.q_min[None] = self.real(ti.math.inf)
+        self.n_negative[None] = 0
+        for e in range(self.ensemble):
+            for i in range(n):
+                self.root[e, i] = ti.sqrt(ti.max(self.q[e, i], self.real(0.0)))
+            for k in range(self.groups[0]):
+                bits = self._face_noise(ti.Vector([e, G * k]), step)
+                for g in ti.static(range(G)):
+                    i = G * k + g
+                    if i < n:
+                        self.flux[e, i][0] = self._face_flux(ti.Vector([e, i]), 0, bits[g])
+            if ti.static(self.grid.boundary[0][1] != PERIODIC):
+                bits = self._face_noise(ti.Vector([e, n]), step)
+                self.flux[e, n][0] = self._face_flux(ti.Vector([e, n]), 0, bits[n % G])
+            mass, q_min, negative = 0.0, self.real(ti.math.inf), 0
+            for i in range(n):
+                J = ti.Vector([e, i])
+                qn = self.q[J] + self.real(self.dt) * self._divergence(self.flux, J)
+                self.q[J] = qn
+                mass += ti.cast(qn, ti.f64)
+                q_min = ti.min(q_min, qn)
+                negative += ti.cast(qn < 0, ti.i32)
+            self.mass[None] += mass * vol
+            ti.atomic_min(self.q_min[None], q_min)
+            self.n_negative[None] += negative
 
     @ti.kernel
     def _diagnose(self):
