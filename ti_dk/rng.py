@@ -14,6 +14,7 @@ division), which changed every noise stream once.
 References: Salmon et al., "Parallel random numbers: as easy as 1, 2, 3" (SC'11) for Philox;
 P. J. Acklam's rational approximation of the inverse normal CDF (relative error < 1.15e-9).
 """
+import functools
 from statistics import NormalDist
 
 import numpy as np
@@ -69,6 +70,7 @@ def uniform(bits: ti.u32, T: ti.template()):
     return u
 
 
+@functools.cache
 def inverse_cdf_table() -> np.ndarray:
     """Cubic coefficients ``(c0, c1, c2, c3)`` of Φ⁻¹ on every segment, ``(octaves · 2^SEG, 4)``.
 
