@@ -450,7 +450,7 @@ class HybridSolver:
             if p < pool.n[cur, e]:
                 ident = pool.pid[cur, e, p]
                 y, alive, clamped = self.walker.move(pool.x[cur, e, p], e, ident[0], ident[1], ti.u32(step))
-                if clamped:  # rare (p ≈ erfc(Δx/√(2Δt)) per axis): an atomic on one word for every particle is not
+                if clamped:  # rare (p ≈ erfc(Δx/√(2Δt)) per axis): no atomic on the shared counter otherwise
                     self.clamped[None] += clamped
                 ghost = ident[1] == ti.u32(step + 1)
                 D = ti.Vector.zero(ti.i32, self.dim + 1)
