@@ -152,7 +152,7 @@ def main():
     trees = [("after", here)] + ([("before", os.path.abspath(args.before))] if args.before else [])
     print(f"# {time.strftime('%Y-%m-%d %H:%M')}, arch={args.arch}, {args.clock} clock, best of {args.blocks} blocks, trees: "
           + ", ".join(f"{k}={v}" for k, v in trees), flush=True)
-    print("| case | unit | threads | " + " | ".join(k for k, _ in trees) + (" | after/before |" if args.before else ""))
+    print("| case | unit | threads | " + " | ".join(k for k, _ in trees) + (" | after/before |" if args.before else " |"))
     print("|---|---|---|" + "---|" * (len(trees) + bool(args.before)), flush=True)
     for case in args.cases:
         for t in ([1] if case == "numpy" else args.threads):
@@ -165,7 +165,7 @@ def main():
                 vals.append(float(out.stdout.strip().splitlines()[-1]) if out.returncode == 0 else math.nan)
                 if out.returncode:
                     print(out.stderr[-2000:], file=sys.stderr)
-            ratio = f" | {vals[0] / vals[1]:.2f} |" if args.before else ""
+            ratio = f" | {vals[0] / vals[1]:.2f} |" if args.before else " |"
             print(f"| {case} | {UNITS[case]} | {t} | " + " | ".join(f"{v:.3g}" for v in vals) + ratio, flush=True)
 
 
