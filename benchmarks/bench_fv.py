@@ -3,7 +3,7 @@
     python benchmarks/bench_fv.py [--arch cpu|cuda] [--quick]
 
 Prints a Markdown table (cell-updates per second). Ceilings: the normal-generation rate of the
-same Philox + Acklam code (a cell needs one normal per axis) and the memory bandwidth of a
+same Philox + table-normal code (a cell needs one normal per axis) and the memory bandwidth of a
 streaming copy (a cell update moves at least q in/out plus dim fluxes in/out).
 """
 import argparse
@@ -68,6 +68,7 @@ def numpy_rate(cells, real, reps):
 
 
 def normal_ceiling(real, n=1 << 23):
+    rng.prepare()
     out = ti.field(real, shape=n)
 
     @ti.kernel

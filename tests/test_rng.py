@@ -36,6 +36,7 @@ N = 1 << 22
 
 
 def _draw(real, kind):
+    rng.prepare()
     f = ti.field(real, shape=N)
 
     @ti.kernel
@@ -79,3 +80,31 @@ def test_uniform_is_open_interval_and_flat(real):
     expected = len(u) / 64
     chi2 = ((hist - expected) ** 2 / expected).sum()
     assert chi2 < 63 + 6 * math.sqrt(2 * 63)
+
+
+@pytest.mark.parametrize("real, tol", [(ti.f32, 2e-6), (ti.f64, 2e-9)], ids=["f32", "f64"])
+def test_normal_is_the_inverse_cdf_of_its_word(real, tol):
+    """Every octave and segment of the table (and Acklam's deep tail) against statistics.NormalDist:
+    the word ``w`` must give Φ⁻¹((m + ½) 2⁻³²), m = w & 0x7FFFFFFF, negated when the top bit is set."""
+    from statistics import NormalDist
+    gen = np.random.default_rng(0)
+    m = np.concatenate([np.arange(0, 1 << 10),  # the deep tail and the first table octaves
+                        (2 ** gen.uniform(10, 31, 1 << 16)).astype(np.int64),  # all octaves
+                        [2**31 - 1, 2**30, 2**30 - 1, 2**24, 2**24 - 1]]).clip(0, 2**31 - 1)
+    words = np.concatenate([m, m | (1 << 31)]).astype(np.uint32)
+    rng.prepare()
+    w = ti.field(ti.u32, shape=words.size)
+    z = ti.field(real, shape=words.size)
+    w.from_numpy(words)
+
+    @ti.kernel
+    def fill():
+        for i in w:
+            z[i] = rng.normal(w[i], real)
+
+    fill()
+    inv = NormalDist().inv_cdf
+    exact = np.array([inv((v + 0.5) * 2.0**-32) for v in m])
+    exact = np.concatenate([exact, -exact])
+    got = z.to_numpy().astype(np.float64)
+    assert np.max(np.abs(got - exact) / np.maximum(1, np.abs(exact))) < tol

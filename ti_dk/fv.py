@@ -1,5 +1,7 @@
 """Finite-volume Dean–Kawasaki (paper eq. 7–9) and its linearised Gaussian version (eq. 10–11)."""
 
+import math
+
 import numpy as np
 import taichi as ti
 
@@ -22,7 +24,12 @@ class SPDESolver:
 
     where ``s = q`` for the finite-volume scheme (eq. 7) and ``s = q̄`` for the linearised Gaussian
     scheme (eq. 11), q̄ obeying the deterministic heat equation (10). ``Z`` is a standard normal
-    keyed on (seed, member, step, face), so a face's noise is the same whoever computes it.
+    keyed on (seed, member, step, face), so a face's noise is the same whoever computes it: one
+    Philox-4x32-10 counter serves ``G = 4 // dim`` consecutive cells along the last axis (4 in 1D,
+    2 in 2D, 1 in 3D), word ``g·dim + a`` driving the lower face along axis ``a`` of the group's
+    cell ``g``, so all four words are used in 1D and 2D (three in 3D). This numbering replaced one
+    counter per cell (issue 13); it changed the 1D and 2D noise streams, not the 3D one.
+    ``√max(s, 0)`` is taken once per cell per step (a pass before the fluxes), not twice per face.
 
     Boundaries: periodic faces wrap; Neumann faces carry no flux; a Dirichlet face sees a ghost
     cell at the reservoir density (for q and for q̄).
@@ -35,6 +42,10 @@ class SPDESolver:
         self.dim = grid.dim
         self.n = grid.cells
         self.key = rng.seed_key(seed)
+        rng.prepare()
+        self.group = max(1, 4 // self.dim)  # cells along the last axis sharing one Philox counter
+        # counter groups per member: the last axis of the padded face grid cut into groups of `group`
+        self.groups = (*self.n[:-1], -(-self.n[-1] // self.group))
         # 1/√(Δt V_c) of eq. (7); 0 without noise: the deterministic scheme, eq. (10)
         self.noise_scale = 1.0 / (dt * grid.cell_volume) ** 0.5 if noise else 0.0
         # the layer of upper boundary faces along each axis, member index first
@@ -44,9 +55,13 @@ class SPDESolver:
         # total flux F (eq. 8) through the lower face of each cell, one component per axis
         # [particles / (area · time)]; the padded last layer holds the upper boundary faces
         self.flux = ti.Vector.field(self.dim, real, shape=(ensemble, *faces))
+        # √max(s, 0) of every cell (s = q, or q̄ for the Gaussian scheme) [√(particles / volume)]
+        self.root = ti.field(real, shape=(1 if gaussian else ensemble, *self.n))
+        self.root_reservoir = tuple(tuple(math.sqrt(max(r, 0.0)) for r in side) for side in grid.reservoir)
         if gaussian:
             self.qbar = ti.field(real, shape=(1, *self.n))  # deterministic density q̄ (eq. 10) [particles / volume]
             self.flux_bar = ti.Vector.field(self.dim, real, shape=(1, *faces))  # ½∇q̄ on faces [particles / (area · time)]
+        self._amplitude_of = self.qbar if gaussian else self.q  # s of eq. (8): q (eq. 7) or q̄ (eq. 11)
         self.mass = ti.field(ti.f64, shape=())  # Σ over members and cells of q V_c after the step [particles]
         self.q_min = ti.field(real, shape=())  # smallest q over members and cells [particles / volume]
         self.n_negative = ti.field(ti.i64, shape=())  # cells (over all members) with q < 0
@@ -62,9 +77,12 @@ class SPDESolver:
 
     def step(self, n: int) -> None:
         """Advance all members from step ``n`` to ``n + 1``."""
-        self._fluxes(n)
-        self._update()
-        self._diagnose()
+        if self.dim == 1 and not self.gaussian:
+            self._step_members(n)
+        else:
+            self._fluxes(n)
+            self._update()
+            self._diagnose()
 
     def state(self) -> dict[str, np.ndarray]:
         """The fields a checkpoint needs to continue bit for bit."""
@@ -91,15 +109,15 @@ class SPDESolver:
 
     # -- kernels ------------------------------------------------------------------------
     @ti.func
-    def _pair(self, f: ti.template(), J, a: ti.template()):
+    def _pair(self, f: ti.template(), J, a: ti.template(), reservoir: ti.template()):
         """Values of ``f`` left and right of the lower face of cell ``J`` along axis ``a``.
 
         ``J`` carries the member index first; off-grid neighbours are periodic images or the
-        Dirichlet reservoir density.
+        Dirichlet reservoir value ``reservoir[a]`` (the density, or its square root).
         """
         n = ti.static(self.n[a])
         lo, hi = ti.static(self.grid.boundary[a])
-        res_lo, res_hi = ti.static(self.grid.reservoir[a])
+        res_lo, res_hi = ti.static(reservoir[a])
         i = J[a + 1]
         L = J - ti.Vector.unit(self.dim + 1, a + 1, ti.i32)
         R = J
@@ -125,14 +143,17 @@ class SPDESolver:
 
     @ti.func
     def _face_noise(self, J, step):
-        """Four normal-driving words for the lower faces of cell ``J`` (word a: the face along a).
+        """The four Philox words of the counter group holding cell ``J`` (member index first).
 
-        One Philox counter per (member, cell), numbered on the padded grid so that the upper
-        boundary faces of non-periodic axes get counters of their own.
+        Groups are numbered on the padded face grid (``n_a + 1`` per axis, the last axis in groups
+        of ``G``), so the upper boundary faces of non-periodic axes get words of their own.
         """
         lin = ti.u32(0)
         for a in ti.static(range(self.dim)):
-            lin = lin * ti.u32(self.n[a] + 1) + ti.u32(J[a + 1])
+            if ti.static(a == self.dim - 1):
+                lin = lin * ti.u32(-(-(self.n[a] + 1) // self.group)) + ti.u32(J[a + 1] // self.group)
+            else:
+                lin = lin * ti.u32(self.n[a] + 1) + ti.u32(J[a + 1])
         return rng.philox4x32(ti.math.uvec4(lin, step, ti.u32(J[0] + self.member0), ti.u32(rng.FACE_NOISE)),
                               ti.math.uvec2(self.key[0], self.key[1]))
 
@@ -142,16 +163,16 @@ class SPDESolver:
         h = ti.static(self.grid.dx[a])
         F = self.real(0.0)
         if not self._is_wall(J[a + 1], a):
-            qq = self._pair(self.q, J, a)
-            s = qq
+            qq = self._pair(self.q, J, a, self.grid.reservoir)
+            J0 = J
             if ti.static(self.gaussian):
-                J0 = J
                 J0[0] = 0
-                s = self._pair(self.qbar, J0, a)
                 if J[0] == 0:
+                    s = self._pair(self.qbar, J0, a, self.grid.reservoir)
                     self.flux_bar[J0][a] = self.real(0.5 / h) * (s[1] - s[0])
-            amp = self.real(0.5) * (ti.sqrt(ti.max(s[0], self.real(0.0))) + ti.sqrt(ti.max(s[1], self.real(0.0))))
-            F = self.real(0.5 / h) * (qq[1] - qq[0]) + self.real(self.noise_scale) * amp * rng.normal(bits, self.real)
+            r = self._pair(self.root, J0, a, self.root_reservoir)
+            F = self.real(0.5 / h) * (qq[1] - qq[0]) \
+                + self.real(0.5 * self.noise_scale) * (r[0] + r[1]) * rng.normal(bits, self.real)
             if ti.static(DIRICHLET in self.grid.boundary[a]):
                 area = ti.static(self.grid.face_area[a] * self.dt)
                 if J[a + 1] == 0:
@@ -163,16 +184,33 @@ class SPDESolver:
     @ti.kernel
     def _fluxes(self, step: ti.u32):
         self.inflow[None] = 0.0
-        for J in ti.grouped(self.q):  # the lower face of every cell along every axis
+        for J in ti.grouped(self.root):  # the amplitude's square roots, once per cell
+            self.root[J] = ti.sqrt(ti.max(self._amplitude_of[J], self.real(0.0)))
+        G, last = ti.static(self.group, self.dim)
+        for K in ti.grouped(ti.ndrange(self.ensemble, *self.groups)):  # the lower faces of G cells
+            J = K
+            J[last] = K[last] * G
             bits = self._face_noise(J, step)
-            for a in ti.static(range(self.dim)):
-                self.flux[J][a] = self._face_flux(J, a, bits[a])
+            for g in ti.static(range(G)):
+                inside = True
+                if ti.static(G > 1):
+                    inside = J[last] < self.n[last - 1]
+                if inside:
+                    for a in ti.static(range(self.dim)):
+                        self.flux[J][a] = self._face_flux(J, a, bits[g * self.dim + a])
+                J[last] += 1
         for a in ti.static(range(self.dim)):  # upper boundary faces (periodic ones are face 0)
             if ti.static(self.grid.boundary[a][1] != PERIODIC):
                 for K in ti.grouped(ti.ndrange(*self.upper_layer[a])):
                     J = K
                     J[a + 1] = self.n[a]
-                    self.flux[J][a] = self._face_flux(J, a, self._face_noise(J, step)[a])
+                    bits = self._face_noise(J, step)
+                    w = (J[last] % G) * self.dim + a
+                    word = bits[0]
+                    for k in ti.static(range(1, 4)):
+                        if w == k:
+                            word = bits[k]
+                    self.flux[J][a] = self._face_flux(J, a, word)
 
     @ti.func
     def _upper(self, J, a: ti.template()):
@@ -198,6 +236,42 @@ class SPDESolver:
         if ti.static(self.gaussian):
             for J in ti.grouped(self.qbar):
                 self.qbar[J] += self.real(self.dt) * self._divergence(self.flux_bar, J)
+
+    @ti.kernel
+    def _step_members(self, step: ti.u32):
+        """The 1D finite-volume step (:meth:`_fluxes`, :meth:`_update`, :meth:`_diagnose`) one member
+        at a time: a member's cells, faces and roots stay in the first-level cache through its
+        four passes, and its diagnostics are summed locally with one atomic per member (not per
+        cell). The same face functions give the same bits as the three-kernel step."""
+        n, G = ti.static(self.n[0], self.group)
+        vol = ti.static(self.grid.cell_volume)
+        self.inflow[None] = 0.0
+        self.mass[None] = 0.0
+        self.q_min[None] = self.real(ti.math.inf)
+        self.n_negative[None] = 0
+        for e in range(self.ensemble):
+            for i in range(n):
+                self.root[e, i] = ti.sqrt(ti.max(self.q[e, i], self.real(0.0)))
+            for k in range(self.groups[0]):
+                bits = self._face_noise(ti.Vector([e, G * k]), step)
+                for g in ti.static(range(G)):
+                    i = G * k + g
+                    if i < n:
+                        self.flux[e, i][0] = self._face_flux(ti.Vector([e, i]), 0, bits[g])
+            if ti.static(self.grid.boundary[0][1] != PERIODIC):
+                bits = self._face_noise(ti.Vector([e, n]), step)
+                self.flux[e, n][0] = self._face_flux(ti.Vector([e, n]), 0, bits[n % G])
+            mass, q_min, negative = 0.0, self.real(ti.math.inf), 0
+            for i in range(n):
+                J = ti.Vector([e, i])
+                qn = self.q[J] + self.real(self.dt) * self._divergence(self.flux, J)
+                self.q[J] = qn
+                mass += ti.cast(qn, ti.f64)
+                q_min = ti.min(q_min, qn)
+                negative += ti.cast(qn < 0, ti.i32)
+            self.mass[None] += mass * vol
+            ti.atomic_min(self.q_min[None], q_min)
+            self.n_negative[None] += negative
 
     @ti.kernel
     def _diagnose(self):

@@ -19,13 +19,27 @@ class Walker:
     .. math:: x_a \leftarrow x_a + \operatorname{clamp}(\sqrt{Δt}\, Z_a, -Δx_a, Δx_a),
 
     with ``Z`` keyed on (seed, member, step, id0, birth): the same whichever thread or slot holds it.
+    One Philox-4x32-10 counter serves the ``G = 4 // dim`` particles ``id0 = G·k … G·k + G − 1``
+    (4 in 1D, 2 in 2D, 1 in 3D): particle ``id0`` takes words ``(id0 mod G)·dim + a``, so a loop
+    that holds consecutive identities together (:meth:`ParticleSolver._walk`) makes one call
+    for ``G`` particles, and a particle walked alone (:meth:`move`) draws the same numbers.
+    (Issue 13: this replaced one counter per particle, changing the 1D and 2D walk streams.)
     """
 
     def __init__(self, grid: Grid, dt: float, real, seed: int, member0: int = 0):
         self.grid, self.dt, self.real = grid, dt, real
         self.member0 = member0  # global index of member 0 (random numbers are keyed on the global index)
         self.dim = grid.dim
+        self.group = max(1, 4 // self.dim)  # consecutive identities sharing one Philox counter
         self.key = rng.seed_key(seed)
+        rng.prepare()
+
+    @ti.func
+    def bits(self, e, id0, birth, step):
+        """The Philox words of the counter group holding particle ``(id0, birth)`` of member ``e``."""
+        return rng.philox4x32(ti.math.uvec4(id0 // ti.u32(self.group), step, self.member(e),
+                                            ti.u32(rng.WALK) | (birth << rng.PURPOSE_BITS)),
+                              ti.math.uvec2(self.key[0], self.key[1]))
 
     @ti.func
     def move(self, x, e, id0, birth, step):
@@ -33,8 +47,19 @@ class Walker:
 
         Returns the new position, whether it is still in the domain, and the number of clamped axes.
         """
-        bits = rng.philox4x32(ti.math.uvec4(id0, step, self.member(e), ti.u32(rng.WALK) | (birth << rng.PURPOSE_BITS)),
-                              ti.math.uvec2(self.key[0], self.key[1]))
+        bits = self.bits(e, id0, birth, step)
+        words = ti.math.uvec4(bits[0], bits[1], bits[2], bits[3])
+        if ti.static(self.group > 1):  # this particle's words first
+            g = ti.cast(id0 % ti.u32(self.group), ti.i32) * self.dim
+            for k in ti.static(range(1, self.group)):
+                if g == k * self.dim:
+                    for a in ti.static(range(self.dim)):
+                        words[a] = bits[k * self.dim + a]
+        return self.step_with(x, words, 0)
+
+    @ti.func
+    def step_with(self, x, bits, g: ti.template()):
+        """The step of :meth:`move` from the words ``bits[g·dim + a]`` (``g`` a compile-time slot)."""
         y = x
         alive = True
         clamped = 0
@@ -42,7 +67,7 @@ class Walker:
             h = ti.static(self.grid.dx[a])
             L = ti.static(self.grid.lengths[a])
             lo, hi = ti.static(self.grid.boundary[a])
-            d = self.real(self.dt**0.5) * rng.normal(bits[a], self.real)
+            d = self.real(self.dt**0.5) * rng.normal(bits[g * self.dim + a], self.real)
             if ti.abs(d) > h:
                 d = ti.math.clamp(d, -self.real(h), self.real(h))
                 clamped += 1
@@ -241,18 +266,30 @@ class ParticleSolver:
     def _walk(self, step: ti.u32):
         self.clamped[None] = 0
         self.inflow[None] = 0
-        for e, p in ti.ndrange(self.ensemble, self.capacity):
-            if p < self.n_alive[e]:
-                id0, birth = ti.u32(p), ti.u32(0)
-                if ti.static(self.grid.has_dirichlet):
+        G = ti.static(self.walker.group)
+        if ti.static(self.grid.has_dirichlet):  # identities are not slots: one counter per particle
+            for e, p in ti.ndrange(self.ensemble, self.capacity):
+                if p < self.n_alive[e]:
                     id0, birth = self.pid[e, p][0], self.pid[e, p][1]
-                y, alive, clamped = self.walker.move(self.x[e, p], e, id0, birth, step)
-                self.x[e, p] = y
-                self.clamped[None] += clamped
-                if ti.static(self.grid.has_dirichlet):
+                    y, alive, clamped = self.walker.move(self.x[e, p], e, id0, birth, step)
+                    self.x[e, p] = y
+                    if clamped:  # rare: an atomic for every particle would cost more than the step
+                        self.clamped[None] += clamped
                     if not alive:
                         self.pid[e, p][1] = ti.u32(DEAD)
                         self.inflow[None] -= 1
+        else:  # identity = slot: the G particles of a counter group walk together
+            for e, k in ti.ndrange(self.ensemble, -(-self.capacity // G)):
+                n = self.n_alive[e]
+                if G * k < n:
+                    bits = self.walker.bits(e, ti.u32(G * k), ti.u32(0), step)
+                    for g in ti.static(range(G)):
+                        p = G * k + g
+                        if p < n:
+                            y, alive, clamped = self.walker.step_with(self.x[e, p], bits, g)
+                            self.x[e, p] = y
+                            if clamped:
+                                self.clamped[None] += clamped
 
     @ti.kernel
     def _exchange(self, step: ti.u32):

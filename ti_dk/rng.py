@@ -1,21 +1,35 @@
-"""Counter-based random numbers: Philox-4x32-10 and a one-uniform → one-normal transform.
+"""Counter-based random numbers: Philox-4x32-10 and a one-word → one-normal transform.
 
 Every random number is a pure function of (seed, counter), with the counter built from
 (index, step, ensemble member, purpose). Results therefore do not depend on the thread count,
 the launch order or the backend, unlike ``ti.random``.
 
+The normal is the inverse normal CDF of the word, by table: the word's 31 low bits fall in one
+of 23 octaves, each cut into 32 segments on which Φ⁻¹ is a cubic (absolute error < 1e-9, fitted
+at import of the table from :class:`statistics.NormalDist`); the deepest tail (p < 2⁻²⁴, one word
+in 2²³) uses Acklam's tail formula. This replaced Acklam's rational approximation everywhere
+(issue 13: a table load and three multiply-adds instead of two degree-5 polynomials and a
+division), which changed every noise stream once.
+
 References: Salmon et al., "Parallel random numbers: as easy as 1, 2, 3" (SC'11) for Philox;
 P. J. Acklam's rational approximation of the inverse normal CDF (relative error < 1.15e-9).
 """
+import functools
+from statistics import NormalDist
 
+import numpy as np
 import taichi as ti
 
 # purposes: the fourth counter word, so that streams for different uses never overlap
-FACE_NOISE = 0  # one counter per cell; word a is the noise on the cell's lower face along axis a
-WALK = 1  # one counter per particle and step; word a is the step along axis a
+FACE_NOISE = 0  # one counter per group of 4 // dim cells along the last axis; word g·dim + a: lower face along a of cell g
+WALK = 1  # one counter per group of 4 // dim particle ids and step; word (id0 mod G)·dim + a: step along a
 SAMPLE_COUNT = 2  # Bernoulli draw for the fractional particle of a cell
 SAMPLE_POSITION = 3  # uniform position of a sampled particle
 PURPOSE_BITS = 4  # the purpose occupies the low bits of word 3; the rest is free for callers
+
+_OCT0 = 8  # octaves m < 2**_OCT0 of the 31-bit magnitude (p < 2**-24) use Acklam's tail formula
+_SEG = 5  # 2**_SEG cubic segments per octave
+_TABLE: dict = {}  # the Taichi program the tables belong to, and the tables (one per precision)
 
 _M0, _M1 = 0xD2511F53, 0xCD9E8D57
 _W0, _W1 = 0x9E3779B9, 0xBB67AE85
@@ -64,17 +78,68 @@ def uniform(bits: ti.u32, T: ti.template()):
     return u
 
 
+@functools.cache
+def inverse_cdf_table() -> np.ndarray:
+    """Cubic coefficients ``(c0, c1, c2, c3)`` of Φ⁻¹ on every segment, ``(octaves · 2^SEG, 4)``.
+
+    Octave ``j`` (``_OCT0 ≤ j ≤ 30``) holds the magnitudes ``m ∈ [2^j, 2^{j+1})``, segment ``s`` of
+    it ``m + ½ = m0 + t·w``, ``w = 2^{j−SEG}``, ``t ∈ (0, 1)``; the cubic fits ``Φ⁻¹((m0 + t w) 2⁻³²)``
+    in ``t`` at six Chebyshev nodes (least squares).
+    """
+    inv = NormalDist().inv_cdf
+    nodes = 0.5 - 0.5 * np.cos((2 * np.arange(6) + 1) * np.pi / 12)
+    rows = []
+    for j in range(_OCT0, 31):
+        w = 2 ** (j - _SEG)
+        for seg in range(2**_SEG):
+            m0 = 2**j + seg * w
+            z = [inv((m0 + t * w) / 2**32) for t in nodes]  # t = 0 is m0 + ½, the first magnitude's p
+            rows.append(np.polyfit(nodes, z, 3)[::-1])
+    return np.array(rows)
+
+
+def prepare() -> None:
+    """Create the normal tables of the running Taichi program (call after ``ti.init``, before
+    compiling a kernel that draws normals; solvers do it in their constructors)."""
+    prog = ti.lang.impl.get_runtime().prog
+    if _TABLE.get("prog") is not prog:
+        coef = inverse_cdf_table()
+        _TABLE.clear()
+        _TABLE["prog"] = prog
+        for T in (ti.f32, ti.f64):
+            f = ti.Vector.field(4, T, shape=coef.shape[0])  # cubic coefficients of Φ⁻¹ per segment
+            f.from_numpy(coef.astype(np.float32 if T == ti.f32 else np.float64))
+            _TABLE[T] = f
+
+
+def _table(T):
+    if _TABLE.get("prog") is not ti.lang.impl.get_runtime().prog:
+        raise RuntimeError("rng.prepare() must be called after ti.init and before kernels that draw normals")
+    return _TABLE[T]
+
+
+@ti.func
+def _power_of_two(k, T: ti.template()):
+    """2^-k for 0 ≤ k < 126 as type ``T``, built from its exponent bits."""
+    v = T(0.0)
+    if ti.static(T == ti.f32):
+        v = ti.bit_cast(ti.cast((127 - k) << 23, ti.i32), ti.f32)
+    else:
+        v = ti.bit_cast(ti.cast(1023 - k, ti.i64) << 52, ti.f64)
+    return v
+
+
 @ti.func
 def normal(bits: ti.u32, T: ti.template()):
-    """A standard normal number of type ``T`` from one 32-bit word (Acklam's inverse CDF).
+    """A standard normal number of type ``T`` from one 32-bit word (inverse CDF by table).
 
-    The top bit gives the sign and the low 31 bits a probability p ∈ (0, ½), so both tails reach
-    |z| ≈ 6.4 symmetrically and no precision is lost near p = 1.
+    The top bit gives the sign and the low 31 bits ``m`` a probability ``p = (m + ½) 2⁻³²`` in
+    (0, ½), so both tails reach |z| ≈ 6.4 symmetrically and no precision is lost near p = 1.
     """
-    # signed integer → float conversion is one instruction; unsigned is several on x86
-    p = (T(ti.cast(bits & ti.u32(0x7FFFFFFF), ti.i32)) + T(0.5)) * T(2.0**-32)
+    m = ti.cast(bits & ti.u32(0x7FFFFFFF), ti.i32)
     z = T(0.0)
-    if p < T(0.02425):
+    if m < (1 << _OCT0):  # p < 2^-24: Acklam's tail (one word in 2^23)
+        p = (T(m) + T(0.5)) * T(2.0**-32)
         r = ti.sqrt(T(-2.0) * ti.log(p))
         num = ((((T(-7.784894002430293e-03) * r + T(-3.223964580411365e-01)) * r + T(-2.400758277161838e00)) * r
                 + T(-2.549732539343734e00)) * r + T(4.374664141464968e00)) * r + T(2.938163982698783e00)
@@ -82,13 +147,11 @@ def normal(bits: ti.u32, T: ti.template()):
                + T(3.754408661907416e00)) * r + T(1.0)
         z = num / den
     else:
-        s = p - T(0.5)
-        r = s * s
-        num = (((((T(-3.969683028665376e01) * r + T(2.209460984245205e02)) * r + T(-2.759285104469687e02)) * r
-                 + T(1.383577518672690e02)) * r + T(-3.066479806614716e01)) * r + T(2.506628277459239e00)) * s
-        den = ((((T(-5.447609879822406e01) * r + T(1.615858368580409e02)) * r + T(-1.556989798598866e02)) * r
-                + T(6.680131188771972e01)) * r + T(-1.328068155288572e01)) * r + T(1.0)
-        z = num / den
+        j = 31 - ti.math.clz(m)  # the octave: 2^j ≤ m < 2^(j+1)
+        sh = j - _SEG
+        c = ti.static(_table(T))[((j - _OCT0) << _SEG) | ((m >> sh) & ((1 << _SEG) - 1))]
+        t = (T(m & ((1 << sh) - 1)) + T(0.5)) * _power_of_two(sh, T)
+        z = c[0] + t * (c[1] + t * (c[2] + t * c[3]))
     if bits & ti.u32(0x80000000):
         z = -z
     return z
