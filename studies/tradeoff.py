@@ -72,10 +72,11 @@ def ellipse_settings() -> list[Setting]:
 def void_error(res: Run | ti_dk.Result) -> dict[str, float]:
     """Per-moment RMS z over the low-density cells at the last output time, and their worst."""
     sc, t = res.scene, res.times[-1]
-    ppc0, steps = sc.initial_ppc, round(t / sc.dt)
-    mean = theory.particle_counts_periodic(ppc0, sc.lengths, sc.dt, steps)["mean"]
+    k = sc.particle_substeps if sc.method == "hybrid" else 1  # the particles' own step is Δt/k
+    ppc0, dt, steps = sc.initial_ppc, sc.dt / k, round(t / sc.dt) * k
+    mean = theory.particle_counts_periodic(ppc0, sc.lengths, dt, steps)["mean"]
     cells = (mean > 0.5) & (mean < 10)
-    exact, se = theory.void_reference(ppc0, sc.lengths[0], sc.dt, steps, sc.ensemble, cells, replicas=100)
+    exact, se = theory.void_reference(ppc0, sc.lengths[0], dt, steps, sc.ensemble, cells, replicas=100)
     vol = res.cell_volume
     est = {"mean": res.stats.mean[-1] * vol, "variance": res.stats.variance[-1] * vol**2,
            "skewness": res.stats.skewness[-1], "kurtosis": res.stats.kurtosis[-1]}
