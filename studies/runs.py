@@ -77,9 +77,9 @@ class Runs:
     def get(self, tag: str, name: str, **keys) -> Run:
         scene = self.scene(name, **keys)
         out = self.root / tag
-        path = out / f"{scene.name}_{scene.method}.h5"
-        if self.rerun or not recorded(path, scene):
-            ti_dk.run(scene, out=out, progress=self.progress, frames=False, snapshots=False)
+        path = io.Outputs.of(out, scene).run_file
+        if self.rerun or not recorded(path, scene):  # a stale or unwanted file is replaced
+            ti_dk.run(scene, out=out, progress=self.progress, frames=False, snapshots=False, overwrite=True)
         return read_run(path, scene)
 
 

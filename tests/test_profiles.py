@@ -34,7 +34,7 @@ def test_exact_answers_drawn_for_periodic_and_stationary_scenes():
     assert np.allclose(exact["mean"], 5.0) and np.allclose(exact["variance"], 5.0 * (1 - 1 / 100))
     void = ProfileRenderer(load_scene("void1d"))
     exact, name = void.exact(0.001)
-    assert name == "exact (Poisson-binomial)"
+    assert name == "exact (Poisson-binomial, clamped walk)"
     assert np.isclose(exact["mean"].sum(), 20 * 50)  # particles are conserved
     assert void.exact(0.0) == (None, None)
     walled = ProfileRenderer(load_scene("void1d", boundary="neumann"))
