@@ -30,3 +30,12 @@ def command(module, *args, cwd=ROOT):
     env = dict(os.environ, PYTHONWARNINGS="ignore")
     return subprocess.run([sys.executable, "-m", module, *args], cwd=cwd, env=env, capture_output=True, text=True,
                           timeout=600)
+
+
+def digest_on_threads(script: str, threads=(1, 2)) -> list[str]:
+    """The last word ``python -c script THREADS`` prints (a state digest), once per thread count:
+    Taichi fixes its thread count at ``ti.init``, so each count needs a process of its own."""
+    import ti_dk
+    env = dict(os.environ, PYTHONPATH=str(Path(ti_dk.__file__).resolve().parent.parent))
+    return [subprocess.run([sys.executable, "-c", script, str(t)], env=env, capture_output=True, text=True,
+                           check=True).stdout.split()[-1] for t in threads]

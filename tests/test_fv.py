@@ -8,6 +8,8 @@ from ti_dk import load_scene, theory
 from ti_dk.fv import SPDESolver
 from ti_dk.grid import Grid
 
+from .helpers import digest_on_threads
+
 
 def _grid(cells, lengths=None, boundary="periodic", reservoir_ppc=0.0):
     scene = load_scene("equilibrium1d", cells=list(cells), lengths=lengths or [1.0] * len(cells),
@@ -117,15 +119,8 @@ print(h.hexdigest())
 
 def test_same_seed_same_bits_on_one_and_two_threads():
     """The noise is counter-based: the state after 30 steps is bit-identical whatever the thread count."""
-    import os
-    import subprocess
-    import sys
-
-    import ti_dk
-    env = dict(os.environ, PYTHONPATH=os.path.dirname(os.path.dirname(os.path.abspath(ti_dk.__file__))))
-    out = [subprocess.run([sys.executable, "-c", _BITS, str(t)], env=env, capture_output=True, text=True, check=True)
-           .stdout.split()[-1] for t in (1, 2)]
-    assert out[0] == out[1]
+    one, two = digest_on_threads(_BITS)
+    assert one == two
 
 
 @pytest.mark.parametrize("boundary", ["periodic", [["dirichlet", "neumann"]], [["neumann", "dirichlet"]]])

@@ -8,7 +8,7 @@ from ti_dk import load_scene, run, theory
 from ti_dk.grid import Grid
 from ti_dk.particles import ParticleSolver
 
-from .helpers import KEYS, as_counts, check_moments
+from .helpers import KEYS, as_counts, check_moments, digest_on_threads
 
 @pytest.mark.slow  # statistical: thousands of members against the exact counts
 def test_equilibrium_counts_are_binomial():
@@ -106,12 +106,5 @@ print(h.hexdigest())
 
 def test_same_seed_same_bits_on_one_and_two_threads():
     """Counter-based walks: the particles after 30 steps are bit-identical whatever the thread count."""
-    import os
-    import subprocess
-    import sys
-
-    import ti_dk
-    env = dict(os.environ, PYTHONPATH=os.path.dirname(os.path.dirname(os.path.abspath(ti_dk.__file__))))
-    out = [subprocess.run([sys.executable, "-c", _BITS, str(t)], env=env, capture_output=True, text=True, check=True)
-           .stdout.split()[-1] for t in (1, 2)]
-    assert out[0] == out[1]
+    one, two = digest_on_threads(_BITS)
+    assert one == two
