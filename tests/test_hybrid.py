@@ -238,7 +238,8 @@ def test_regrid_on_demand():
         assert s.diagnostics()["negative_cells"] == 0
     demand = [r for r in s.regrids if r["on_demand"]]
     assert len(demand) > 3 and (s.region() & ~start).sum() > 20
-    # what was below the threshold at the last extension is covered now
+    # an extension now leaves no uncovered cell below the threshold
+    assert s._mark_low(4.0) > 0
     s.extend(60)
     q = s.density() * vol
     assert q[~s.region()].min() >= 4.0
