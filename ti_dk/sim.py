@@ -446,7 +446,9 @@ def summary(result: Result) -> str:
 
     main = [negative(""), *([mass] if mass else [])]
     if "particles" in d:
-        where = f"{d['particles'][-1] / E:,.1f} particles{' per member' * (E > 1)} in the particle region"
+        n = d["particles"][-1] / E
+        where = f"{n:,.1f}" if E > 1 else f"{int(n):,}"
+        where += f" particles{' per member' * (E > 1)} in the particle region"
         if sc.regrid_interval == 0:
             covered = f": {result.regrids[0]['covered_cells'] / E:,.0f} cells{' per member' * (E > 1)}" \
                 if result.regrids else ""
