@@ -36,8 +36,10 @@ class SPDESolver:
     """
 
     def __init__(self, grid: Grid, dt: float, ensemble: int, seed: int, real=ti.f64, gaussian: bool = False,
-                 member0: int = 0, noise: bool = True):
+                 member0: int = 0, track_mean: bool = False):
         self.grid, self.dt, self.ensemble, self.real, self.gaussian = grid, dt, ensemble, real, gaussian
+        # q̄ (eq. 10) is advanced for the Gaussian scheme's amplitude, or for whoever reads it (the hybrid's ghosts)
+        self.track_mean = gaussian or track_mean
         self.member0 = member0  # global index of member 0: a member's noise depends on it, not on the chunking
         self.dim = grid.dim
         self.n = grid.cells
@@ -46,8 +48,7 @@ class SPDESolver:
         self.group = max(1, 4 // self.dim)  # cells along the last axis sharing one Philox counter
         # counter groups per member: the last axis of the padded face grid cut into groups of `group`
         self.groups = (*self.n[:-1], -(-self.n[-1] // self.group))
-        # 1/√(Δt V_c) of eq. (7); 0 without noise: the deterministic scheme, eq. (10)
-        self.noise_scale = 1.0 / (dt * grid.cell_volume) ** 0.5 if noise else 0.0
+        self.noise_scale = 1.0 / (dt * grid.cell_volume) ** 0.5  # 1/√(Δt V_c) of eq. (7)
         # the layer of upper boundary faces along each axis, member index first
         self.upper_layer = [(ensemble, *(1 if b == a else m for b, m in enumerate(self.n))) for a in range(self.dim)]
         faces = tuple(m + 1 for m in self.n)
@@ -58,7 +59,7 @@ class SPDESolver:
         # √max(s, 0) of every cell (s = q, or q̄ for the Gaussian scheme) [√(particles / volume)]
         self.root = ti.field(real, shape=(1 if gaussian else ensemble, *self.n))
         self.root_reservoir = tuple(tuple(math.sqrt(max(r, 0.0)) for r in side) for side in grid.reservoir)
-        if gaussian:
+        if self.track_mean:
             self.qbar = ti.field(real, shape=(1, *self.n))  # deterministic density q̄ (eq. 10) [particles / volume]
             self.flux_bar = ti.Vector.field(self.dim, real, shape=(1, *faces))  # ½∇q̄ on faces [particles / (area · time)]
         self._amplitude_of = self.qbar if gaussian else self.q  # s of eq. (8): q (eq. 7) or q̄ (eq. 11)
@@ -72,12 +73,12 @@ class SPDESolver:
         """Set every member (and q̄) to ``ppc`` particles per cell."""
         q0 = np.broadcast_to(ppc / self.grid.cell_volume, (self.ensemble, *self.n))
         self.q.from_numpy(np.ascontiguousarray(q0, dtype=numpy_dtype(self.real)))
-        if self.gaussian:
+        if self.track_mean:
             self.qbar.from_numpy(np.ascontiguousarray(q0[:1], dtype=numpy_dtype(self.real)))
 
     def step(self, n: int) -> None:
         """Advance all members from step ``n`` to ``n + 1``."""
-        if self.dim == 1 and not self.gaussian:
+        if self.dim == 1 and not self.track_mean:
             self._step_members(n)
         else:
             self._fluxes(n)
@@ -86,11 +87,11 @@ class SPDESolver:
 
     def state(self) -> dict[str, np.ndarray]:
         """The fields a checkpoint needs to continue bit for bit."""
-        return {"q": self.q.to_numpy(), **({"qbar": self.qbar.to_numpy()} if self.gaussian else {})}
+        return {"q": self.q.to_numpy(), **({"qbar": self.qbar.to_numpy()} if self.track_mean else {})}
 
     def load_state(self, st: dict[str, np.ndarray]) -> None:
         self.q.from_numpy(st["q"])
-        if self.gaussian:
+        if self.track_mean:
             self.qbar.from_numpy(st["qbar"])
         self._diagnose()
 
@@ -165,12 +166,12 @@ class SPDESolver:
         if not self._is_wall(J[a + 1], a):
             qq = self._pair(self.q, J, a, self.grid.reservoir)
             J0 = J
-            if ti.static(self.gaussian):
-                J0[0] = 0
+            J0[0] = 0
+            if ti.static(self.track_mean):
                 if J[0] == 0:
                     s = self._pair(self.qbar, J0, a, self.grid.reservoir)
                     self.flux_bar[J0][a] = self.real(0.5 / h) * (s[1] - s[0])
-            r = self._pair(self.root, J0, a, self.root_reservoir)
+            r = self._pair(self.root, J0 if ti.static(self.gaussian) else J, a, self.root_reservoir)
             F = self.real(0.5 / h) * (qq[1] - qq[0]) \
                 + self.real(0.5 * self.noise_scale) * (r[0] + r[1]) * rng.normal(bits, self.real)
             if ti.static(DIRICHLET in self.grid.boundary[a]):
@@ -233,7 +234,7 @@ class SPDESolver:
     def _update(self):
         for J in ti.grouped(self.q):
             self.q[J] += self.real(self.dt) * self._divergence(self.flux, J)
-        if ti.static(self.gaussian):
+        if ti.static(self.track_mean):
             for J in ti.grouped(self.qbar):
                 self.qbar[J] += self.real(self.dt) * self._divergence(self.flux_bar, J)
 

@@ -90,8 +90,7 @@ class HybridSolver:
         self.dim, self.n = grid.dim, grid.cells
         self.key = rng.seed_key(seed)
         self.walker = Walker(grid, spde.dt / substeps, spde.real, seed, spde.member0)  # one particle sub-step
-        if ghost_profile == "mean":  # q̄: the deterministic scheme, eq. (10), the same for every member
-            self.mean = SPDESolver(grid, spde.dt, 1, seed, spde.real, noise=False)
+        assert ghost_profile != "mean" or spde.track_mean, "ghost_profile 'mean' reads the SPDE's q̄"
         if substeps > 1:
             self.q_old = ti.field(spde.real, shape=(spde.ensemble, *grid.cells))  # q^n while q holds q^{n+1,*} [1/volume]
         self.offsets = list(itertools.product((-1, 0, 1), repeat=self.dim))  # the 3^d Chebyshev neighbours
@@ -128,8 +127,6 @@ class HybridSolver:
     # -- public -------------------------------------------------------------------------
     def initialize(self) -> None:
         """The first region from the (already initialised) SPDE, particles sampled into it."""
-        if self.profile == "mean":
-            self.mean.q.from_numpy(self.spde.q.to_numpy()[:1])
         self.regrid(0)
 
     def step(self, n: int) -> None:
@@ -144,7 +141,6 @@ class HybridSolver:
             self.timing["regrid"] += _clock() - t
         t0 = _clock()
         if self.n_cover == 0:  # no particle region: a plain SPDE step
-            self._step_mean(n)
             self.spde.step(n)
             self.timing["spde"] += _clock() - t0
             return
@@ -153,7 +149,6 @@ class HybridSolver:
         if k > 1:
             self.q_old.copy_from(self.spde.q)
         self._fill_ghosts(n * k, 0.0, tilt_on)
-        self._step_mean(n)  # later sub-steps' ghosts read q̄^{n+1}, as they read q^{n+1,*}
         t1 = _clock()
         self.spde._fluxes(n)
         self.spde._update()
@@ -173,10 +168,6 @@ class HybridSolver:
         t3 = _clock()
         self.timing["spde"] += t2 - t1
         self.timing["particles"] += (t1 - t0) + (t3 - t2)
-
-    def _step_mean(self, n: int) -> None:
-        if self.profile == "mean":
-            self.mean.step(n)
 
     def _fill_ghosts(self, sub: int, w: float, tilt_on: int) -> None:
         """Ghosts for particle sub-step ``sub`` from ``(1 − w) q^n + w q^{n+1,*}``; the fill is a pure
@@ -258,8 +249,6 @@ class HybridSolver:
         top = max(1, int(n.max()))
         boxes = [(e, *lo, *hi) for e, bs in enumerate(self.boxes) for lo, hi in bs]
         st = {f"spde_{k}": v for k, v in self.spde.state().items()}
-        if self.profile == "mean":
-            st["mean_q"] = self.mean.q.to_numpy()
         st |= {"covered": self.covered.to_numpy(), "n_real": n,
                "x": self.pool.x.to_numpy()[self.cur, :, :top], "pid": self.pool.pid.to_numpy()[self.cur, :, :top],
                "boxes": np.array(boxes, dtype=np.int64).reshape(-1, 1 + 2 * self.dim)}
@@ -269,8 +258,6 @@ class HybridSolver:
 
     def load_state(self, st: dict[str, np.ndarray]) -> None:
         self.spde.load_state({k[5:]: v for k, v in st.items() if k.startswith("spde_")})
-        if self.profile == "mean":
-            self.mean.load_state({"q": st["mean_q"]})
         n, x, pid = st["n_real"], st["x"], st["pid"]
         self._grow(max(self.pool.capacity, int(1.5 * x.shape[1]) + 64))
         cap = self.pool.capacity
@@ -401,7 +388,7 @@ class HybridSolver:
         if ti.static(self.profile == "mean"):
             J0 = J
             J0[0] = 0
-            v = self.mean.q[J0]
+            v = self.spde.qbar[J0]
         else:
             v = self.spde.q[J]
         return v

@@ -172,7 +172,8 @@ def make_solver(scene: Scene, ppc: np.ndarray, member0: int = 0):
         solver.initialize(ppc, exact_uniform=scene.particle_init == "exact_uniform")
         return solver
     gaussian = "gaussian" in (scene.method, scene.spde if scene.method == "hybrid" else None)
-    solver = SPDESolver(gaussian=gaussian, **common)
+    mean_ghosts = scene.method == "hybrid" and scene.ghost_profile == "mean"  # ghosts read q̄
+    solver = SPDESolver(gaussian=gaussian, track_mean=mean_ghosts, **common)
     solver.initialize(ppc)
     if scene.method == "hybrid":
         solver = HybridSolver(solver, scene.regrid, scene.regrid_interval, scene.seed, scene.ghost_profile,
