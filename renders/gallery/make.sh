@@ -10,7 +10,7 @@ gallery=renders/gallery
 if [[ $what == scenes || $what == all ]]; then
     $py -m ti_dk.scene ellipse2d --out "$out"
     $py -m ti_dk.scene sphere3d --out "$out"  # 6 min on a quiet 2-core machine
-    $py -m ti_dk.scene ellipse2d --quick --movie --out "$out/quick"
+    $py -m ti_dk.scene ellipse2d --quick --movie --set movie_frames=16 --out "$out/quick"
     $py -m ti_dk.scene void1d --method hybrid --ensemble 2000 --out "$out"
     cp "$out/ellipse2d_hybrid_frames/frame_0002.png" $gallery/ellipse2d_t00096.png
     cp "$out/sphere3d_hybrid_frames/frame_0002.png" $gallery/sphere3d_t0015.png
