@@ -144,7 +144,7 @@ class HybridSolver:
             self.spde.step(n)
             self.timing["spde"] += _clock() - t0
             return
-        tilt_on = int(self.profile != "mean" or n > 0)  # at n = 0 the state is piecewise constant
+        tilt_on = self._tilt_on(n)
         k = self.substeps
         if k > 1:
             self.q_old.copy_from(self.spde.q)
@@ -169,8 +169,14 @@ class HybridSolver:
         self.timing["spde"] += t2 - t1
         self.timing["particles"] += (t1 - t0) + (t3 - t2)
 
+    def _tilt_on(self, n: int) -> int:
+        """Whether particles sampled at step ``n`` are tilted: not at the start with ``mean``, where
+        q̄ is the piecewise-constant initial condition (particles lie uniformly in each cell)."""
+        return int(self.profile != "mean" or n > 0)
+
     def _fill_ghosts(self, sub: int, w: float, tilt_on: int) -> None:
-        """Ghosts for particle sub-step ``sub`` from ``(1 − w) q^n + w q^{n+1,*}``; the fill is a pure
+        """Ghosts for particle sub-step ``sub`` from ``(1 − w) q^n + w q^{n+1,*}`` (for s > 0 after S1,
+        :meth:`_s1`: what the SPDE left in the ghost cell); the fill is a pure
         function of its inputs, so a pool that is too small is grown and the fill redone."""
         while True:
             self._fill(self.pool, self.cur, sub, self.n_ring, w, tilt_on)
@@ -233,7 +239,7 @@ class HybridSolver:
         masks = np.broadcast_to(masks, (self.ensemble, *self.n))
         self._grow(self._estimate(masks, ppc))
         self.fresh.from_numpy(masks.astype(np.uint8))
-        tilt_on = int(self.profile != "mean" or n > 0)  # the initial state is uniform in each cell
+        tilt_on = self._tilt_on(n)
         self._regrid_apply(self.pool, self.cur, n * self.substeps, tilt_on)
         self._compact(self.pool, self.cur)
         self.cur = 1 - self.cur
