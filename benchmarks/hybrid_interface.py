@@ -58,7 +58,12 @@ def report(counts, region, scene, steps, blocks):
     z_mean = (mean - exact["mean"]) / np.sqrt(k2 / N)
     z_var = (var - k2) / np.sqrt((k4 + 2 * k2**2) / N)
     z_brown = (mean - brownian["mean"]) / np.sqrt(k2 / N)
-    lines = ["cell  region  exact_mean  z_mean  exact_var  z_var  z_skew  z_kurt  z_mean_unclamped"]
+    linear = sub == 1 and scene.ghost_profile in ("mean", "uniform")  # the hybrid's own mean is known
+    hybrid = theory.hybrid_mean_1d(ppc0, region, scene.dt, steps, ghost_profile=scene.ghost_profile) if linear \
+        else np.full(len(ppc0), np.nan)
+    z_hyb = (mean - hybrid) / np.sqrt(k2 / N)
+    lines = ["cell  region  exact_mean  z_mean  exact_var  z_var  z_skew  z_kurt  z_mean_unclamped  "
+             "hybrid_mean  z_vs_hybrid"]
     d = counts - mean
     skew = (d**3).mean(0) / (d**2).mean(0) ** 1.5
     kurt = (d**4).mean(0) / (d**2).mean(0) ** 2
@@ -69,7 +74,8 @@ def report(counts, region, scene, steps, blocks):
     zk_all = (kurt - exact["kurtosis"]) / se["kurtosis"]
     for i in range(34, 67):
         lines.append(f"{i + 1:4d}  {'P' if region[i] else '.':6s}  {exact['mean'][i]:10.4f}  {z_mean[i]:6.2f}  "
-                     f"{k2[i]:9.4f}  {z_var[i]:6.2f}  {zs_all[i]:6.2f}  {zk_all[i]:6.2f}  {z_brown[i]:6.2f}")
+                     f"{k2[i]:9.4f}  {z_var[i]:6.2f}  {zs_all[i]:6.2f}  {zk_all[i]:6.2f}  {z_brown[i]:16.2f}  "
+                     f"{hybrid[i]:11.4f}  {z_hyb[i]:11.2f}")
     t = theory.count_in_cells(ppc0, P, region)
     tot = counts[:, region].sum(1)
     tot_mean, tot_var, tot_k4 = t["mean"], t["variance"], (t["kurtosis"] - 3) * t["variance"] ** 2
@@ -77,6 +83,9 @@ def report(counts, region, scene, steps, blocks):
     lines.append(f"region total: mean {tot.mean():.3f} vs exact {tot_mean:.3f} (z = "
                  f"{(tot.mean() - tot_mean) / math.sqrt(tot_var / N):.2f}); variance {tot.var(ddof=1):.3f} vs exact "
                  f"{tot_var:.3f} (z = {z_tot:.2f})")
+    h_tot = hybrid[region].sum()
+    lines.append(f"region total: the hybrid's own expectation (theory.hybrid_mean_1d) {h_tot:.3f} "
+                 f"(z = {(tot.mean() - h_tot) / math.sqrt(tot_var / N):.2f})")
     # block-to-block (seed-to-seed) scatter of the region total's mean against the within-block error
     B = counts[:, region].sum(1).reshape(blocks, -1)
     z = (B.mean(1) - B.mean()) / np.sqrt(B.var(1, ddof=1) / B.shape[1])
@@ -84,7 +93,7 @@ def report(counts, region, scene, steps, blocks):
     lines.append(f"block scatter of the region total: chi2 = {chi2:.1f} on {blocks - 1} dof, "
                  f"p = {chi2_sf(chi2, blocks - 1):.3f}")
     worst = {"mean": np.abs(z_mean).max(), "var(region)": np.abs(z_var[region]).max(),
-             "mean vs unclamped (region)": np.abs(z_brown[region]).max()}
+             "mean vs unclamped (region)": np.abs(z_brown[region]).max(), "mean vs hybrid": np.abs(z_hyb).max()}
     lines.append("max |z|: " + ", ".join(f"{k} {v:.2f}" for k, v in worst.items()))
     return "\n".join(lines)
 
