@@ -149,27 +149,40 @@ class Renderer:
                 self.pixels[r].append((x, top, w, h))
                 x += w + GAP
                 row_axes.append(ax)
-                if k == len(self.planes):  # the volume rendering
-                    row_images.append(ax.imshow(np.zeros((h, w, 3)), interpolation="nearest", resample=False))
-                    ax.set_axis_off()
-                    self._cube_edges(ax, w)
-                    continue
-                (a, b), cut = self.planes[k]
-                ext = (0, self.lengths[a], 0, self.lengths[b])
-                shape = (self.cells[b], self.cells[a])
-                row_images.append(ax.imshow(np.zeros(shape), origin="lower", extent=ext, cmap=self.cmap,
-                                            norm=self.norm, interpolation="nearest", resample=False, aspect="auto"))
-                row_lines.append([ax.add_collection(LineCollection([], **style)) for style in OUTLINE])
-                names = "xyz"
-                ax.set_xlabel(f"{names[a]} [L]", labelpad=1)
-                ax.set_ylabel(f"{names[b]} [L]", labelpad=1)
-                ax.tick_params(labelsize=8, length=3, pad=2)
-                if cut is not None:
-                    c = (self.cells[cut] // 2 + 0.5) * self.dx[cut]
-                    ax.set_title(f"{names[a]}{names[b]} slice, {names[cut]} = {c:.3g}", fontsize=9)
+                image, lines = self._panel(ax, k, w, h)
+                row_images.append(image)
+                if lines is not None:
+                    row_lines.append(lines)
             self.axes.append(row_axes)
             self.images.append(row_images)
             self.lines.append(row_lines)
+        self._colorbar()
+        self._mark_dynamic()
+
+    def _panel(self, ax, k, w: int, h: int):
+        """Panel ``k`` of a row: a slice (image and region outlines) or, past the slices, the volume."""
+        if k == len(self.planes):  # the volume rendering
+            image = ax.imshow(np.zeros((h, w, 3)), interpolation="nearest", resample=False)
+            ax.set_axis_off()
+            self._cube_edges(ax, w)
+            return image, None
+        (a, b), cut = self.planes[k]
+        ext = (0, self.lengths[a], 0, self.lengths[b])
+        image = ax.imshow(np.zeros((self.cells[b], self.cells[a])), origin="lower", extent=ext, cmap=self.cmap,
+                          norm=self.norm, interpolation="nearest", resample=False, aspect="auto")
+        lines = [ax.add_collection(LineCollection([], **style)) for style in OUTLINE]
+        names = "xyz"
+        ax.set_xlabel(f"{names[a]} [L]", labelpad=1)
+        ax.set_ylabel(f"{names[b]} [L]", labelpad=1)
+        ax.tick_params(labelsize=8, length=3, pad=2)
+        if cut is not None:
+            c = (self.cells[cut] // 2 + 0.5) * self.dx[cut]
+            ax.set_title(f"{names[a]}{names[b]} slice, {names[cut]} = {c:.3g}", fontsize=9)
+        return image, lines
+
+    def _colorbar(self):
+        """The colour bar beside the panels, from the top of the first row to the bottom of the last."""
+        W, H = self.width, self.height
         first, last = self.axes[0][0], self.axes[-1][0]
         y0, y1 = last.get_position().y0, first.get_position().y1
         cx = (self.width - BAR + 6) / W
@@ -179,8 +192,10 @@ class Renderer:
         cb = self.fig.colorbar(sm, cax=cax, extend="both", extendfrac=0.04)
         cb.set_label("particles per cell (white: < 0)", fontsize=9)
         cax.tick_params(labelsize=8)
-        # What changes from frame to frame is drawn over a cached picture of the rest (axes, ticks,
-        # labels, colour bar): text is most of a frame's cost, and the ticks never change.
+
+    def _mark_dynamic(self):
+        """What changes from frame to frame is drawn over a cached picture of the rest (axes, ticks,
+        labels, colour bar): text is most of a frame's cost, and the ticks never change."""
         self.dynamic = [self.header, *self.row_titles]
         for r in range(self.rows):
             for k, ax in enumerate(self.axes[r]):
