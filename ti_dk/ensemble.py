@@ -8,7 +8,6 @@ stopped after k of n chunks resumes with the rest; a chunk whose worker died is 
 and counted once.
 """
 import dataclasses
-import json
 import math
 import os
 import sys
@@ -20,7 +19,7 @@ import h5py
 import numpy as np
 from tqdm import tqdm
 
-from . import sim
+from . import runtime, sim
 from .config import ConfigError, Scene, check_options
 from .io import (Outputs, RunFile, atomic_h5, output_error, read_group, read_rows, same_scene, scene_json, write_group,
                  write_rows)
@@ -45,7 +44,7 @@ def run_chunk(scene: Scene, member0: int, threads: int | None = None) -> dict:
         pass
     global _INIT_THREAD
     if _INIT_THREAD != threading.get_ident():  # Taichi breaks when started in another thread (an
-        sim.init("cpu", threads)  # unguarded ti_dk.init in a script Dask re-imports): start it here
+        runtime.init("cpu", threads)  # unguarded ti_dk.init in a script Dask re-imports): start it here
         _INIT_THREAD = threading.get_ident()
     res = sim.run(scene, progress=False, member0=member0)
     return {"member0": member0, "times": res.times, "rows": res.rows, "diagnostics": res.diagnostics,
@@ -54,7 +53,7 @@ def run_chunk(scene: Scene, member0: int, threads: int | None = None) -> dict:
 
 def run(scene: Scene, executor: str = "local", out: str | Path | None = None, progress: bool | None = None,
         chunk: int | None = None, workers: int = 2, threads: int = 1, scheduler: str | None = None,
-        overwrite: bool = False) -> sim.Result:
+        overwrite: bool = False) -> runtime.Result:
     """Run ``scene`` in-process (``local``: the batched ensemble) or in chunks on Dask.
 
     ``chunk``: members per chunk (default: the ensemble over 4 × workers for members under 4096
@@ -62,7 +61,7 @@ def run(scene: Scene, executor: str = "local", out: str | Path | None = None, pr
     ``threads`` size the LocalCluster started on this machine unless ``scheduler`` (an address
     such as ``tcp://host:8786``, e.g. from dask-jobqueue) names an existing cluster. The output
     is claimed as :func:`ti_dk.sim.run` claims it (one run at a time, ``overwrite`` to replace a
-    complete result); a signal seen by :func:`ti_dk.sim.stop_on_signals` stops it between chunks.
+    complete result); a signal seen by :func:`ti_dk.runtime.stop_on_signals` stops it between chunks.
     """
     if executor not in EXECUTORS:
         raise ConfigError(f"executor '{executor}': use one of {', '.join(EXECUTORS)}")
@@ -79,7 +78,7 @@ def run(scene: Scene, executor: str = "local", out: str | Path | None = None, pr
             raise output_error(outputs.out, exc) from None
 
 
-def _run_dask(scene: Scene, outputs: Outputs | None, progress, chunk, workers, threads, scheduler) -> sim.Result:
+def _run_dask(scene: Scene, outputs: Outputs | None, progress, chunk, workers, threads, scheduler) -> runtime.Result:
     try:
         from distributed import Client, LocalCluster, Queue
     except ImportError:
@@ -131,7 +130,7 @@ def _finished(futures):
 
     pending = set(futures)
     while pending:
-        sim.check_stop(f" with {len(pending)} chunk(s) to go (the finished ones are kept for the next run)")
+        runtime.check_stop(f" with {len(pending)} chunk(s) to go (the finished ones are kept for the next run)")
         try:
             done, pending = wait(pending, timeout=0.5, return_when="FIRST_COMPLETED")
         except TimeoutError:
@@ -139,7 +138,7 @@ def _finished(futures):
         yield from done
 
 
-def _merge(scene: Scene, parts: list[dict], outputs: Outputs | None, wall: float, info: dict) -> sim.Result:
+def _merge(scene: Scene, parts: list[dict], outputs: Outputs | None, wall: float, info: dict) -> runtime.Result:
     """Merge the chunks' accumulators in member order; per-step diagnostics are summed over members
     (``min_density`` is the minimum)."""
     hist = scene.histogram
@@ -155,17 +154,17 @@ def _merge(scene: Scene, parts: list[dict], outputs: Outputs | None, wall: float
         diag[k] = v[0] if k == "time" else v.min(axis=0) if k == "min_density" else v.sum(axis=0)
     times = parts[0]["times"]
     path = None
-    if outputs is not None:
-        path = outputs.run_file
-        rf = RunFile(path, scene, hist[1] - hist[0] + 1 if hist else None)
-        for t, row in zip(times, rows):
-            rf.write_row(t, row)
+    if outputs is not None:  # the run file as a single-process run writes it
+        rf = RunFile.of(outputs, scene)
+        rf.write_rows(times, rows)
         rf.write_diagnostics({k: list(v) for k, v in diag.items()})
-        rf.h5.attrs["chunks"] = json.dumps(info)
+        rf.annotate("chunks", info)
         rf.close(wall)
-    return sim.Result(scene=scene, times=times, cell_volume=scene.cell_volume, stats=sim.stats_of(rows, hist),
-                      diagnostics=diag, final_density=np.concatenate([p["final_density"] for p in parts]),
-                      wall_time=wall, path=path, timing={"total": wall}, rows=rows, chunks=info)
+        path = rf.path
+    return runtime.Result(scene=scene, times=times, cell_volume=scene.cell_volume,
+                          stats=runtime.stats_of(rows, hist), diagnostics=diag,
+                          final_density=np.concatenate([p["final_density"] for p in parts]),
+                          wall_time=wall, path=path, timing={"total": wall}, rows=rows, chunks=info)
 
 
 def _save_chunk(store: Path, scene: Scene, r: dict) -> None:

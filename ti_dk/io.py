@@ -186,6 +186,12 @@ class RunFile:
         self.diag = self.h5.create_group("diagnostics")
         self.h5.flush()
 
+    @classmethod
+    def of(cls, outputs: Outputs, scene) -> "RunFile":
+        """The run file of ``outputs``, with as many histogram bins as ``scene.histogram`` asks."""
+        hist = scene.histogram
+        return cls(outputs.run_file, scene, hist[1] - hist[0] + 1 if hist else None)
+
     @staticmethod
     def _grow(group, name, shape, dtype):
         return group.create_dataset(name, shape=(0, *shape), maxshape=(None, *shape), dtype=dtype,
@@ -207,6 +213,11 @@ class RunFile:
                 self._append(st[k], np.asarray(v)[None])
         self.h5.flush()
 
+    def write_rows(self, times, rows: list[dict[str, np.ndarray]]) -> None:
+        """:meth:`write_row` for each of ``rows`` (a restarted run's, a merged ensemble's)."""
+        for t, row in zip(times, rows):
+            self.write_row(t, row)
+
     def write_diagnostics(self, diag: dict[str, list]) -> None:
         require_space(self.path, 8 * sum(len(v) for v in diag.values()))
         for k, v in diag.items():
@@ -223,6 +234,10 @@ class RunFile:
             for k in records[0]:
                 g.create_dataset(k, data=np.array([r[k] for r in records]))
             self.h5.flush()
+
+    def annotate(self, name: str, value) -> None:
+        """Set the root attribute ``name`` (JSON text for a dict: ``timing``, ``chunks``)."""
+        self.h5.attrs[name] = json.dumps(value) if isinstance(value, dict) else value
 
     def close(self, wall_time: float | None = None, error: str | None = None) -> None:
         """Close the file, marked complete only without ``error``; after an I/O error, as far as the
@@ -304,6 +319,11 @@ def close_h5(f) -> None:
 def _b(text: str) -> np.bytes_:
     """openPMD string attributes as fixed-length bytes (what yt and openPMD-viewer expect)."""
     return np.bytes_(text.encode())
+
+
+def pack_ids(pid: np.ndarray) -> np.ndarray:
+    """openPMD particle ids: each ``(slot at birth, birth step + 1)`` u32 pair as one u64."""
+    return (pid[:, 0].astype(np.uint64) << np.uint64(32)) | pid[:, 1].astype(np.uint64)
 
 
 def write_openpmd(directory: Path, iteration: int, t: float, dt: float, grid, density: np.ndarray,
