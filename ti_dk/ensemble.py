@@ -91,8 +91,7 @@ def _run_dask(scene: Scene, outputs: Outputs | None, progress, chunk, workers, t
     per_worker = 4 if math.prod(scene.cells) < 4096 else 1
     size = chunk or max(1, math.ceil(scene.ensemble / (per_worker * workers)))
     todo = chunks(scene.ensemble, size)
-    store = outputs.chunks if outputs is not None else None
-    done = _load_chunks(store, scene) if store else {}
+    done = _load_chunks(outputs, scene) if outputs is not None else {}
     show = sys.stderr.isatty() if progress is None else progress
     cluster = None
     if scheduler is None:
@@ -110,8 +109,8 @@ def _run_dask(scene: Scene, outputs: Outputs | None, progress, chunk, workers, t
                 r = fut.result()
                 if r["member0"] not in done:  # a chunk is counted once, however often it ran
                     done[r["member0"]] = r
-                    if store:
-                        _save_chunk(store, scene, r)
+                    if outputs is not None:
+                        _save_chunk(outputs, scene, r)
                     bar.update(len(r["final_density"]))
         while queue.qsize():
             m0, _ = queue.get()
@@ -167,9 +166,9 @@ def _merge(scene: Scene, parts: list[dict], outputs: Outputs | None, wall: float
                           wall_time=wall, path=path, timing={"total": wall}, rows=rows, chunks=info)
 
 
-def _save_chunk(store: Path, scene: Scene, r: dict) -> None:
-    store.mkdir(parents=True, exist_ok=True)
-    with atomic_h5(store / f"chunk_{r['member0']:09d}.h5") as f:
+def _save_chunk(outputs: Outputs, scene: Scene, r: dict) -> None:
+    outputs.chunks.mkdir(parents=True, exist_ok=True)
+    with atomic_h5(outputs.chunk(r["member0"])) as f:
         f.attrs["scene"] = scene_json(scene)
         f.attrs["member0"], f.attrs["wall_time"] = r["member0"], r["wall_time"]
         f["times"], f["final_density"] = r["times"], r["final_density"]
@@ -177,14 +176,14 @@ def _save_chunk(store: Path, scene: Scene, r: dict) -> None:
         write_group(f, "diagnostics", r["diagnostics"])
 
 
-def _load_chunks(store: Path, scene: Scene) -> dict[int, dict]:
+def _load_chunks(outputs: Outputs, scene: Scene) -> dict[int, dict]:
     """Chunks a stopped run already finished (for this very scene); an unreadable one is run again."""
     done = {}
-    for path in sorted(store.glob("chunk_*.h5")):
+    for path in outputs.chunk_files():
         try:
             with h5py.File(path, "r") as f:
                 if not same_scene(f, scene):
-                    raise ConfigError(f"{store} holds chunks of other scene settings: remove it or use another --out")
+                    raise ConfigError(f"{outputs.chunks} holds chunks of other scene settings: remove it or use another --out")
                 done[int(f.attrs["member0"])] = {
                     "member0": int(f.attrs["member0"]), "times": f["times"][()],
                     "final_density": f["final_density"][()], "rows": read_rows(f),

@@ -13,7 +13,7 @@ from pathlib import Path
 
 from .checkpoint import Progress, write_checkpoint
 from .config import Scene
-from .io import RunFile, pack_ids, write_openpmd
+from .io import RunFile, frame_file, pack_ids, write_openpmd
 from .solver import Solver
 from .stats import CellStats
 
@@ -162,7 +162,7 @@ class Frames:
         self.log = log  # per frame: time and negative cells (restored from a checkpoint or empty)
         self.statistics = statistics  # whose rows 1D frames draw
         if writer is not None:
-            writer.files = [writer.dir / f"frame_{k:04d}.png" for k in range(len(log["time"]))]
+            writer.files = [frame_file(writer.dir, k) for k in range(len(log["time"]))]
 
     def due(self, n: int) -> bool:
         return self.writer is not None and n in self.steps

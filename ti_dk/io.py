@@ -122,6 +122,14 @@ class Outputs:
         finally:
             os.close(fd)  # releases the lock
 
+    def chunk(self, member0: int) -> Path:
+        """The file of the finished chunk whose first member is ``member0`` (Dask)."""
+        return self.chunks / f"chunk_{member0:09d}.h5"
+
+    def chunk_files(self) -> list[Path]:
+        """The finished chunks' files, in member order."""
+        return sorted(self.chunks.glob("chunk_*.h5"))
+
     def clear_pictures(self) -> None:
         """Remove the frames, movie and snapshots of an earlier run on this output."""
         for folder, patterns in ((self.frames, ("frame_*.png",)), (self.snapshots, ("data*.h5",))):
@@ -129,6 +137,11 @@ class Outputs:
                 for p in folder.glob(pattern):
                     p.unlink(missing_ok=True)
         self.movie.unlink(missing_ok=True)
+
+
+def frame_file(directory: Path, k: int) -> Path:
+    """The ``k``-th PNG frame in a frames folder (``Outputs.frames``)."""
+    return directory / f"frame_{k:04d}.png"
 
 
 def is_complete(path: Path) -> bool:
@@ -339,8 +352,6 @@ def write_openpmd(directory: Path, iteration: int, t: float, dt: float, grid, de
     directory.mkdir(parents=True, exist_ok=True)
     path = directory / f"data{iteration:06d}.h5"
     require_space(directory, 3 * density.nbytes + (0 if positions is None else 3 * positions.nbytes))
-    d = grid.dim
-    labels = [_b(a) for a in "xyz"[:d]]
     with atomic_h5(path) as f:
         a = f.attrs
         a["openPMD"], a["openPMDextension"] = _b("1.1.0"), np.uint32(0)
@@ -350,39 +361,49 @@ def write_openpmd(directory: Path, iteration: int, t: float, dt: float, grid, de
         a["date"] = _b(time.strftime("%Y-%m-%d %H:%M:%S %z"))
         it = f.create_group(f"data/{iteration}")
         it.attrs["time"], it.attrs["dt"], it.attrs["timeUnitSI"] = float(t), float(dt), 1.0
-        meshes = it.create_group("meshes")
-        fields = {"density": (density, -d), "negative_cells": ((density < 0).astype(np.uint8), 0)}
-        if region is not None:
-            fields["particle_region"] = (region.astype(np.uint8), 0)
-        for name, (data, length_power) in fields.items():
-            ds = meshes.create_dataset(name, data=data)
-            ds.attrs["unitDimension"] = np.array([length_power, 0, 0, 0, 0, 0, 0], dtype=np.float64)
-            ds.attrs["timeOffset"] = np.float32(0.0)
-            ds.attrs["geometry"], ds.attrs["dataOrder"] = _b("cartesian"), _b("C")
-            ds.attrs["axisLabels"] = np.array(labels)
-            ds.attrs["gridSpacing"] = np.array(grid.dx, dtype=np.float64)
-            ds.attrs["gridGlobalOffset"] = np.zeros(d)
-            ds.attrs["gridUnitSI"], ds.attrs["unitSI"] = 1.0, 1.0
-            ds.attrs["position"] = np.full(d, 0.5)
+        _openpmd_meshes(it.create_group("meshes"), grid, density, region)
         if positions is not None:
-            sp = it.create_group("particles/particles")
-            n = positions.shape[0]
-            for rec, power in (("position", 1), ("positionOffset", 1), ("id", 0)):
-                g = sp.create_group(rec) if rec != "id" else None
-                if rec == "id":
-                    g = sp.create_dataset("id", data=np.asarray(ids, dtype=np.uint64))
-                    g.attrs["unitSI"] = 1.0
-                else:
-                    for k, axis in enumerate("xyz"[:d]):
-                        if rec == "position":
-                            c = g.create_dataset(axis, data=np.asarray(positions[:, k], dtype=np.float64))
-                        else:
-                            c = g.create_group(axis)
-                            c.attrs["value"], c.attrs["shape"] = 0.0, np.array([n], dtype=np.uint64)
-                        c.attrs["unitSI"] = 1.0
-                g.attrs["unitDimension"] = np.array([power, 0, 0, 0, 0, 0, 0], dtype=np.float64)
-                g.attrs["timeOffset"] = np.float32(0.0)
+            _openpmd_particles(it.create_group("particles/particles"), positions, ids)
         if boxes is not None:
             f.create_dataset("ti_dk/boxes", data=boxes)
             f["ti_dk"].attrs["columns"] = _b("lo (one per axis), hi (one per axis), in cells; hi exclusive")
     return path
+
+
+def _openpmd_meshes(meshes, grid, density: np.ndarray, region: np.ndarray | None) -> None:
+    """Meshes ``density``, ``negative_cells`` and, with a region, ``particle_region``."""
+    d = grid.dim
+    labels = [_b(a) for a in "xyz"[:d]]
+    fields = {"density": (density, -d), "negative_cells": ((density < 0).astype(np.uint8), 0)}
+    if region is not None:
+        fields["particle_region"] = (region.astype(np.uint8), 0)
+    for name, (data, length_power) in fields.items():
+        ds = meshes.create_dataset(name, data=data)
+        ds.attrs["unitDimension"] = np.array([length_power, 0, 0, 0, 0, 0, 0], dtype=np.float64)
+        ds.attrs["timeOffset"] = np.float32(0.0)
+        ds.attrs["geometry"], ds.attrs["dataOrder"] = _b("cartesian"), _b("C")
+        ds.attrs["axisLabels"] = np.array(labels)
+        ds.attrs["gridSpacing"] = np.array(grid.dx, dtype=np.float64)
+        ds.attrs["gridGlobalOffset"] = np.zeros(d)
+        ds.attrs["gridUnitSI"], ds.attrs["unitSI"] = 1.0, 1.0
+        ds.attrs["position"] = np.full(d, 0.5)
+
+
+def _openpmd_particles(sp, positions: np.ndarray, ids: np.ndarray) -> None:
+    """Species records ``position``, ``positionOffset`` (constant 0) and ``id``."""
+    n, d = positions.shape
+    for rec, power in (("position", 1), ("positionOffset", 1), ("id", 0)):
+        g = sp.create_group(rec) if rec != "id" else None
+        if rec == "id":
+            g = sp.create_dataset("id", data=np.asarray(ids, dtype=np.uint64))
+            g.attrs["unitSI"] = 1.0
+        else:
+            for k, axis in enumerate("xyz"[:d]):
+                if rec == "position":
+                    c = g.create_dataset(axis, data=np.asarray(positions[:, k], dtype=np.float64))
+                else:
+                    c = g.create_group(axis)
+                    c.attrs["value"], c.attrs["shape"] = 0.0, np.array([n], dtype=np.uint64)
+                c.attrs["unitSI"] = 1.0
+        g.attrs["unitDimension"] = np.array([power, 0, 0, 0, 0, 0, 0], dtype=np.float64)
+        g.attrs["timeOffset"] = np.float32(0.0)
