@@ -83,7 +83,7 @@ def _steps(scene, steps, check=None):
     from ti_dk.methods import make_solver
 
     s = make_solver(scene, scene.initial_ppc)
-    mass = [s.diagnostics()["mass"] if hasattr(s, "regrids") or scene.method != "particle" else None]
+    mass = [s.diagnostics()["mass"] if scene.method != "particle" else None]
     for n in range(steps):
         s.step(n)
         d = s.diagnostics()
