@@ -14,7 +14,7 @@ import numpy as np
 
 import ti_dk
 from ti_dk import config, io
-from ti_dk.sim import Stats
+from ti_dk.runtime import Stats
 
 
 @dataclass(frozen=True)

@@ -81,3 +81,31 @@ def test_outputs_stay_inside_out_and_lock_one_run(tmp_path):
                 pass
     with o.claim():  # released
         pass
+
+
+def test_chunk_and_frame_names_and_openpmd_ids(tmp_path):
+    from ti_dk.io import Outputs, frame_file, pack_ids
+
+    o = Outputs.of(tmp_path, load_scene("void1d"))
+    assert o.chunk(12).parent == o.chunks and o.chunk(12).name == "chunk_000000012.h5"
+    o.chunks.mkdir()
+    for m0 in (40, 0):
+        o.chunk(m0).touch()
+    assert o.chunk_files() == [o.chunk(0), o.chunk(40)]
+    assert frame_file(o.frames, 3) == o.frames / "frame_0003.png"
+    pid = np.array([[1, 2], [2**32 - 1, 0]], dtype=np.uint32)
+    assert pack_ids(pid).tolist() == [(1 << 32) | 2, (2**32 - 1) << 32]
+
+
+def test_run_file_rows_and_attributes(tmp_path):
+    from ti_dk.io import Outputs, RunFile
+
+    scene = load_scene("void1d", ensemble=2, cells=[4], histogram=[0, 3])
+    rf = RunFile.of(Outputs.of(tmp_path, scene), scene)
+    row = {"mean": np.ones(4), "n_samples": 2, "histogram": np.zeros((4, 4), dtype=np.int64)}
+    rf.write_rows([0.0, 0.5], [row, row])
+    rf.annotate("timing", {"io": 1.0})
+    rf.close(1.0)
+    with h5py.File(rf.path) as f:
+        assert f["stats/time"][:].tolist() == [0.0, 0.5] and f["stats/histogram"].shape == (2, 4, 4)
+        assert json.loads(f.attrs["timing"]) == {"io": 1.0} and f.attrs["complete"]

@@ -4,7 +4,8 @@ Importing ti_dk never starts Taichi; :func:`run` does (CPU unless told), or call
 """
 from .config import ConfigError, Scene, available_scenes, load_scene
 from .io import package_version
-from .sim import Result, SimulationError, init, run
+from .runtime import Result, SimulationError, init
+from .sim import run
 
 __version__ = package_version()  # from pyproject.toml, through the installed metadata
 

@@ -8,7 +8,6 @@ stopped after k of n chunks resumes with the rest; a chunk whose worker died is 
 and counted once.
 """
 import dataclasses
-import json
 import math
 import os
 import sys
@@ -20,7 +19,7 @@ import h5py
 import numpy as np
 from tqdm import tqdm
 
-from . import sim
+from . import runtime, sim
 from .config import ConfigError, Scene, check_options
 from .io import (Outputs, RunFile, atomic_h5, output_error, read_group, read_rows, same_scene, scene_json, write_group,
                  write_rows)
@@ -45,7 +44,7 @@ def run_chunk(scene: Scene, member0: int, threads: int | None = None) -> dict:
         pass
     global _INIT_THREAD
     if _INIT_THREAD != threading.get_ident():  # Taichi breaks when started in another thread (an
-        sim.init("cpu", threads)  # unguarded ti_dk.init in a script Dask re-imports): start it here
+        runtime.init("cpu", threads)  # unguarded ti_dk.init in a script Dask re-imports): start it here
         _INIT_THREAD = threading.get_ident()
     res = sim.run(scene, progress=False, member0=member0)
     return {"member0": member0, "times": res.times, "rows": res.rows, "diagnostics": res.diagnostics,
@@ -54,7 +53,7 @@ def run_chunk(scene: Scene, member0: int, threads: int | None = None) -> dict:
 
 def run(scene: Scene, executor: str = "local", out: str | Path | None = None, progress: bool | None = None,
         chunk: int | None = None, workers: int = 2, threads: int = 1, scheduler: str | None = None,
-        overwrite: bool = False) -> sim.Result:
+        overwrite: bool = False) -> runtime.Result:
     """Run ``scene`` in-process (``local``: the batched ensemble) or in chunks on Dask.
 
     ``chunk``: members per chunk (default: the ensemble over 4 × workers for members under 4096
@@ -62,7 +61,7 @@ def run(scene: Scene, executor: str = "local", out: str | Path | None = None, pr
     ``threads`` size the LocalCluster started on this machine unless ``scheduler`` (an address
     such as ``tcp://host:8786``, e.g. from dask-jobqueue) names an existing cluster. The output
     is claimed as :func:`ti_dk.sim.run` claims it (one run at a time, ``overwrite`` to replace a
-    complete result); a signal seen by :func:`ti_dk.sim.stop_on_signals` stops it between chunks.
+    complete result); a signal seen by :func:`ti_dk.runtime.stop_on_signals` stops it between chunks.
     """
     if executor not in EXECUTORS:
         raise ConfigError(f"executor '{executor}': use one of {', '.join(EXECUTORS)}")
@@ -79,7 +78,7 @@ def run(scene: Scene, executor: str = "local", out: str | Path | None = None, pr
             raise output_error(outputs.out, exc) from None
 
 
-def _run_dask(scene: Scene, outputs: Outputs | None, progress, chunk, workers, threads, scheduler) -> sim.Result:
+def _run_dask(scene: Scene, outputs: Outputs | None, progress, chunk, workers, threads, scheduler) -> runtime.Result:
     try:
         from distributed import Client, LocalCluster, Queue
     except ImportError:
@@ -92,8 +91,7 @@ def _run_dask(scene: Scene, outputs: Outputs | None, progress, chunk, workers, t
     per_worker = 4 if math.prod(scene.cells) < 4096 else 1
     size = chunk or max(1, math.ceil(scene.ensemble / (per_worker * workers)))
     todo = chunks(scene.ensemble, size)
-    store = outputs.chunks if outputs is not None else None
-    done = _load_chunks(store, scene) if store else {}
+    done = _load_chunks(outputs, scene) if outputs is not None else {}
     show = sys.stderr.isatty() if progress is None else progress
     cluster = None
     if scheduler is None:
@@ -111,8 +109,8 @@ def _run_dask(scene: Scene, outputs: Outputs | None, progress, chunk, workers, t
                 r = fut.result()
                 if r["member0"] not in done:  # a chunk is counted once, however often it ran
                     done[r["member0"]] = r
-                    if store:
-                        _save_chunk(store, scene, r)
+                    if outputs is not None:
+                        _save_chunk(outputs, scene, r)
                     bar.update(len(r["final_density"]))
         while queue.qsize():
             m0, _ = queue.get()
@@ -131,7 +129,7 @@ def _finished(futures):
 
     pending = set(futures)
     while pending:
-        sim.check_stop(f" with {len(pending)} chunk(s) to go (the finished ones are kept for the next run)")
+        runtime.check_stop(f" with {len(pending)} chunk(s) to go (the finished ones are kept for the next run)")
         try:
             done, pending = wait(pending, timeout=0.5, return_when="FIRST_COMPLETED")
         except TimeoutError:
@@ -139,7 +137,7 @@ def _finished(futures):
         yield from done
 
 
-def _merge(scene: Scene, parts: list[dict], outputs: Outputs | None, wall: float, info: dict) -> sim.Result:
+def _merge(scene: Scene, parts: list[dict], outputs: Outputs | None, wall: float, info: dict) -> runtime.Result:
     """Merge the chunks' accumulators in member order; per-step diagnostics are summed over members
     (``min_density`` is the minimum)."""
     hist = scene.histogram
@@ -155,22 +153,22 @@ def _merge(scene: Scene, parts: list[dict], outputs: Outputs | None, wall: float
         diag[k] = v[0] if k == "time" else v.min(axis=0) if k == "min_density" else v.sum(axis=0)
     times = parts[0]["times"]
     path = None
-    if outputs is not None:
-        path = outputs.run_file
-        rf = RunFile(path, scene, hist[1] - hist[0] + 1 if hist else None)
-        for t, row in zip(times, rows):
-            rf.write_row(t, row)
+    if outputs is not None:  # the run file as a single-process run writes it
+        rf = RunFile.of(outputs, scene)
+        rf.write_rows(times, rows)
         rf.write_diagnostics({k: list(v) for k, v in diag.items()})
-        rf.h5.attrs["chunks"] = json.dumps(info)
+        rf.annotate("chunks", info)
         rf.close(wall)
-    return sim.Result(scene=scene, times=times, cell_volume=scene.cell_volume, stats=sim.stats_of(rows, hist),
-                      diagnostics=diag, final_density=np.concatenate([p["final_density"] for p in parts]),
-                      wall_time=wall, path=path, timing={"total": wall}, rows=rows, chunks=info)
+        path = rf.path
+    return runtime.Result(scene=scene, times=times, cell_volume=scene.cell_volume,
+                          stats=runtime.stats_of(rows, hist), diagnostics=diag,
+                          final_density=np.concatenate([p["final_density"] for p in parts]),
+                          wall_time=wall, path=path, timing={"total": wall}, rows=rows, chunks=info)
 
 
-def _save_chunk(store: Path, scene: Scene, r: dict) -> None:
-    store.mkdir(parents=True, exist_ok=True)
-    with atomic_h5(store / f"chunk_{r['member0']:09d}.h5") as f:
+def _save_chunk(outputs: Outputs, scene: Scene, r: dict) -> None:
+    outputs.chunks.mkdir(parents=True, exist_ok=True)
+    with atomic_h5(outputs.chunk(r["member0"])) as f:
         f.attrs["scene"] = scene_json(scene)
         f.attrs["member0"], f.attrs["wall_time"] = r["member0"], r["wall_time"]
         f["times"], f["final_density"] = r["times"], r["final_density"]
@@ -178,14 +176,14 @@ def _save_chunk(store: Path, scene: Scene, r: dict) -> None:
         write_group(f, "diagnostics", r["diagnostics"])
 
 
-def _load_chunks(store: Path, scene: Scene) -> dict[int, dict]:
+def _load_chunks(outputs: Outputs, scene: Scene) -> dict[int, dict]:
     """Chunks a stopped run already finished (for this very scene); an unreadable one is run again."""
     done = {}
-    for path in sorted(store.glob("chunk_*.h5")):
+    for path in outputs.chunk_files():
         try:
             with h5py.File(path, "r") as f:
                 if not same_scene(f, scene):
-                    raise ConfigError(f"{store} holds chunks of other scene settings: remove it or use another --out")
+                    raise ConfigError(f"{outputs.chunks} holds chunks of other scene settings: remove it or use another --out")
                 done[int(f.attrs["member0"])] = {
                     "member0": int(f.attrs["member0"]), "times": f["times"][()],
                     "final_density": f["final_density"][()], "rows": read_rows(f),

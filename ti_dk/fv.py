@@ -6,11 +6,12 @@ import numpy as np
 import taichi as ti
 
 from . import rng
+from .solver import Solver
 from .grid import DIRICHLET, NEUMANN, PERIODIC, Grid, numpy_dtype
 
 
 @ti.data_oriented
-class SPDESolver:
+class SPDESolver(Solver):
     r"""Explicit Euler–Maruyama for ``dq = ½∇²q dt + ∇·(√max(q,0) dW)`` on every ensemble member.
 
     One step is the flux form, eq. (9),

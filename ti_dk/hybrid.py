@@ -12,6 +12,7 @@ from .config import HYBRID_STEP_LIMIT, ID_BITS_MIN
 from .fv import SPDESolver
 from .grid import DIRICHLET, PERIODIC, cell_of, numpy_dtype
 from .particles import Walker
+from .solver import RegionSolver
 
 BLOCK = 256  # slots per compaction block: an exclusive scan over blocks replaces a contended atomic
 REGRID_BIRTH = HYBRID_STEP_LIMIT  # flag in the birth word of particles sampled at a regrid (ghosts: step + 1)
@@ -45,7 +46,7 @@ class ParticlePool:
 
 
 @ti.data_oriented
-class HybridSolver:
+class HybridSolver(RegionSolver):
     r"""SPDE on the whole grid coupled to particles in a region (paper §3.1–3.2).
 
     One step ``n → n+1``:

@@ -122,6 +122,14 @@ class Outputs:
         finally:
             os.close(fd)  # releases the lock
 
+    def chunk(self, member0: int) -> Path:
+        """The file of the finished chunk whose first member is ``member0`` (Dask)."""
+        return self.chunks / f"chunk_{member0:09d}.h5"
+
+    def chunk_files(self) -> list[Path]:
+        """The finished chunks' files, in member order."""
+        return sorted(self.chunks.glob("chunk_*.h5"))
+
     def clear_pictures(self) -> None:
         """Remove the frames, movie and snapshots of an earlier run on this output."""
         for folder, patterns in ((self.frames, ("frame_*.png",)), (self.snapshots, ("data*.h5",))):
@@ -129,6 +137,11 @@ class Outputs:
                 for p in folder.glob(pattern):
                     p.unlink(missing_ok=True)
         self.movie.unlink(missing_ok=True)
+
+
+def frame_file(directory: Path, k: int) -> Path:
+    """The ``k``-th PNG frame in a frames folder (``Outputs.frames``)."""
+    return directory / f"frame_{k:04d}.png"
 
 
 def is_complete(path: Path) -> bool:
@@ -186,6 +199,12 @@ class RunFile:
         self.diag = self.h5.create_group("diagnostics")
         self.h5.flush()
 
+    @classmethod
+    def of(cls, outputs: Outputs, scene) -> "RunFile":
+        """The run file of ``outputs``, with as many histogram bins as ``scene.histogram`` asks."""
+        hist = scene.histogram
+        return cls(outputs.run_file, scene, hist[1] - hist[0] + 1 if hist else None)
+
     @staticmethod
     def _grow(group, name, shape, dtype):
         return group.create_dataset(name, shape=(0, *shape), maxshape=(None, *shape), dtype=dtype,
@@ -207,6 +226,11 @@ class RunFile:
                 self._append(st[k], np.asarray(v)[None])
         self.h5.flush()
 
+    def write_rows(self, times, rows: list[dict[str, np.ndarray]]) -> None:
+        """:meth:`write_row` for each of ``rows`` (a restarted run's, a merged ensemble's)."""
+        for t, row in zip(times, rows):
+            self.write_row(t, row)
+
     def write_diagnostics(self, diag: dict[str, list]) -> None:
         require_space(self.path, 8 * sum(len(v) for v in diag.values()))
         for k, v in diag.items():
@@ -223,6 +247,10 @@ class RunFile:
             for k in records[0]:
                 g.create_dataset(k, data=np.array([r[k] for r in records]))
             self.h5.flush()
+
+    def annotate(self, name: str, value) -> None:
+        """Set the root attribute ``name`` (JSON text for a dict: ``timing``, ``chunks``)."""
+        self.h5.attrs[name] = json.dumps(value) if isinstance(value, dict) else value
 
     def close(self, wall_time: float | None = None, error: str | None = None) -> None:
         """Close the file, marked complete only without ``error``; after an I/O error, as far as the
@@ -306,6 +334,11 @@ def _b(text: str) -> np.bytes_:
     return np.bytes_(text.encode())
 
 
+def pack_ids(pid: np.ndarray) -> np.ndarray:
+    """openPMD particle ids: each ``(slot at birth, birth step + 1)`` u32 pair as one u64."""
+    return (pid[:, 0].astype(np.uint64) << np.uint64(32)) | pid[:, 1].astype(np.uint64)
+
+
 def write_openpmd(directory: Path, iteration: int, t: float, dt: float, grid, density: np.ndarray,
                   region: np.ndarray | None = None, positions: np.ndarray | None = None,
                   ids: np.ndarray | None = None, boxes: np.ndarray | None = None) -> Path:
@@ -319,8 +352,6 @@ def write_openpmd(directory: Path, iteration: int, t: float, dt: float, grid, de
     directory.mkdir(parents=True, exist_ok=True)
     path = directory / f"data{iteration:06d}.h5"
     require_space(directory, 3 * density.nbytes + (0 if positions is None else 3 * positions.nbytes))
-    d = grid.dim
-    labels = [_b(a) for a in "xyz"[:d]]
     with atomic_h5(path) as f:
         a = f.attrs
         a["openPMD"], a["openPMDextension"] = _b("1.1.0"), np.uint32(0)
@@ -330,39 +361,49 @@ def write_openpmd(directory: Path, iteration: int, t: float, dt: float, grid, de
         a["date"] = _b(time.strftime("%Y-%m-%d %H:%M:%S %z"))
         it = f.create_group(f"data/{iteration}")
         it.attrs["time"], it.attrs["dt"], it.attrs["timeUnitSI"] = float(t), float(dt), 1.0
-        meshes = it.create_group("meshes")
-        fields = {"density": (density, -d), "negative_cells": ((density < 0).astype(np.uint8), 0)}
-        if region is not None:
-            fields["particle_region"] = (region.astype(np.uint8), 0)
-        for name, (data, length_power) in fields.items():
-            ds = meshes.create_dataset(name, data=data)
-            ds.attrs["unitDimension"] = np.array([length_power, 0, 0, 0, 0, 0, 0], dtype=np.float64)
-            ds.attrs["timeOffset"] = np.float32(0.0)
-            ds.attrs["geometry"], ds.attrs["dataOrder"] = _b("cartesian"), _b("C")
-            ds.attrs["axisLabels"] = np.array(labels)
-            ds.attrs["gridSpacing"] = np.array(grid.dx, dtype=np.float64)
-            ds.attrs["gridGlobalOffset"] = np.zeros(d)
-            ds.attrs["gridUnitSI"], ds.attrs["unitSI"] = 1.0, 1.0
-            ds.attrs["position"] = np.full(d, 0.5)
+        _openpmd_meshes(it.create_group("meshes"), grid, density, region)
         if positions is not None:
-            sp = it.create_group("particles/particles")
-            n = positions.shape[0]
-            for rec, power in (("position", 1), ("positionOffset", 1), ("id", 0)):
-                g = sp.create_group(rec) if rec != "id" else None
-                if rec == "id":
-                    g = sp.create_dataset("id", data=np.asarray(ids, dtype=np.uint64))
-                    g.attrs["unitSI"] = 1.0
-                else:
-                    for k, axis in enumerate("xyz"[:d]):
-                        if rec == "position":
-                            c = g.create_dataset(axis, data=np.asarray(positions[:, k], dtype=np.float64))
-                        else:
-                            c = g.create_group(axis)
-                            c.attrs["value"], c.attrs["shape"] = 0.0, np.array([n], dtype=np.uint64)
-                        c.attrs["unitSI"] = 1.0
-                g.attrs["unitDimension"] = np.array([power, 0, 0, 0, 0, 0, 0], dtype=np.float64)
-                g.attrs["timeOffset"] = np.float32(0.0)
+            _openpmd_particles(it.create_group("particles/particles"), positions, ids)
         if boxes is not None:
             f.create_dataset("ti_dk/boxes", data=boxes)
             f["ti_dk"].attrs["columns"] = _b("lo (one per axis), hi (one per axis), in cells; hi exclusive")
     return path
+
+
+def _openpmd_meshes(meshes, grid, density: np.ndarray, region: np.ndarray | None) -> None:
+    """Meshes ``density``, ``negative_cells`` and, with a region, ``particle_region``."""
+    d = grid.dim
+    labels = [_b(a) for a in "xyz"[:d]]
+    fields = {"density": (density, -d), "negative_cells": ((density < 0).astype(np.uint8), 0)}
+    if region is not None:
+        fields["particle_region"] = (region.astype(np.uint8), 0)
+    for name, (data, length_power) in fields.items():
+        ds = meshes.create_dataset(name, data=data)
+        ds.attrs["unitDimension"] = np.array([length_power, 0, 0, 0, 0, 0, 0], dtype=np.float64)
+        ds.attrs["timeOffset"] = np.float32(0.0)
+        ds.attrs["geometry"], ds.attrs["dataOrder"] = _b("cartesian"), _b("C")
+        ds.attrs["axisLabels"] = np.array(labels)
+        ds.attrs["gridSpacing"] = np.array(grid.dx, dtype=np.float64)
+        ds.attrs["gridGlobalOffset"] = np.zeros(d)
+        ds.attrs["gridUnitSI"], ds.attrs["unitSI"] = 1.0, 1.0
+        ds.attrs["position"] = np.full(d, 0.5)
+
+
+def _openpmd_particles(sp, positions: np.ndarray, ids: np.ndarray) -> None:
+    """Species records ``position``, ``positionOffset`` (constant 0) and ``id``."""
+    n, d = positions.shape
+    for rec, power in (("position", 1), ("positionOffset", 1), ("id", 0)):
+        g = sp.create_group(rec) if rec != "id" else None
+        if rec == "id":
+            g = sp.create_dataset("id", data=np.asarray(ids, dtype=np.uint64))
+            g.attrs["unitSI"] = 1.0
+        else:
+            for k, axis in enumerate("xyz"[:d]):
+                if rec == "position":
+                    c = g.create_dataset(axis, data=np.asarray(positions[:, k], dtype=np.float64))
+                else:
+                    c = g.create_group(axis)
+                    c.attrs["value"], c.attrs["shape"] = 0.0, np.array([n], dtype=np.uint64)
+                c.attrs["unitSI"] = 1.0
+        g.attrs["unitDimension"] = np.array([power, 0, 0, 0, 0, 0, 0], dtype=np.float64)
+        g.attrs["timeOffset"] = np.float32(0.0)

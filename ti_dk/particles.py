@@ -6,6 +6,7 @@ import taichi as ti
 
 from . import rng
 from .grid import DIRICHLET, NEUMANN, PERIODIC, Grid, cell_of
+from .solver import Solver
 
 DEAD = 0xFFFFFFFF  # birth word of an absorbed particle
 
@@ -126,7 +127,7 @@ class Walker:
 
 
 @ti.data_oriented
-class ParticleSolver:
+class ParticleSolver(Solver):
     r"""Brownian walkers with D = ½ for every ensemble member (paper §3, the particle model).
 
     One step moves each particle by :meth:`Walker.move`, so a particle crosses at most one cell

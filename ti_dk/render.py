@@ -32,6 +32,7 @@ from matplotlib.collections import LineCollection
 from matplotlib.colors import Normalize
 from matplotlib.figure import Figure
 
+from .io import frame_file
 from .regrid import mask as region_mask
 
 DPI = 100  # figure pixels per inch: sizes below are in pixels
@@ -374,7 +375,7 @@ class FrameWriter:
     def write(self, t: float, *content) -> Path:
         """Render ``renderer.frame(t, *content)`` to the next PNG."""
         rgb = self.renderer.frame(t, *content)
-        path = self.dir / f"frame_{len(self.files):04d}.png"
+        path = frame_file(self.dir, len(self.files))
         iio.imwrite(path, rgb, compress_level=1)  # fast deflate: a third of the time of the default, files ~1.3x
         self.files.append(path)
         return path

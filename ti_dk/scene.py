@@ -11,7 +11,7 @@ import os
 import sys
 import warnings
 
-from . import config, ensemble, sim
+from . import config, ensemble, runtime, sim
 from .io import OutputError
 
 
@@ -74,7 +74,7 @@ def main(argv: list[str] | None = None) -> int:
     for key in ("method", "ensemble", "seed", "t_end"):
         if getattr(args, key) is not None:
             overrides[key] = getattr(args, key)
-    with sim.stop_on_signals():
+    with runtime.stop_on_signals():
         try:
             with warnings.catch_warnings(record=True) as caught:
                 warnings.simplefilter("always", config.ClampWarning)
@@ -86,7 +86,7 @@ def main(argv: list[str] | None = None) -> int:
             config.check_options(scene, out=args.out, executor=args.executor, workers=args.workers,
                                  chunk=args.chunk, threads=args.threads, scheduler=args.scheduler,
                                  checkpoint_every=args.checkpoint_every, restart=args.restart, movie=args.movie)
-            sim.init(args.arch, args.threads)
+            runtime.init(args.arch, args.threads)
             _announce(scene)
             if args.executor == "dask":
                 result = ensemble.run(scene, "dask", out=args.out, progress=not args.no_progress, chunk=args.chunk,
@@ -98,12 +98,12 @@ def main(argv: list[str] | None = None) -> int:
                                  checkpoint_every=args.checkpoint_every, restart=args.restart)
         except config.ConfigError as exc:
             return _fail(str(exc))
-        except sim.Stopped as exc:
+        except runtime.Stopped as exc:
             return _fail(str(exc), exc.status)
         except OutputError as exc:
             _fail(str(exc), 1)
             _exit_now(1)
-        except sim.SimulationError as exc:
+        except runtime.SimulationError as exc:
             return _fail(str(exc), 1)
     print(sim.summary(result))
     return 0

@@ -1,198 +1,41 @@
-"""The run controller: Taichi start-up, the time loop, statistics cadence, output and diagnostics."""
+"""The run controller: a scene's solvers advanced step by step, each step followed by the output
+handlers that are due (:mod:`ti_dk.handlers`), and the end-of-run summary."""
 from __future__ import annotations
 
-import contextlib
-import ctypes
 import dataclasses
-import io
-import json
 import math
-import os
-import signal
 import sys
-import threading
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
-import h5py
 import numpy as np
-import taichi as ti
 from tqdm import tqdm
 
-from .config import ConfigError, Scene, check_options
-from .fv import SPDESolver
-from .grid import Grid
-from .hybrid import HybridSolver
-from .io import (
-    Outputs,
-    RunFile,
-    atomic_h5,
-    output_error,
-    read_group,
-    read_rows,
-    require_space,
-    same_scene,
-    scene_json,
-    write_group,
-    write_openpmd,
-    write_rows,
-)
-from .particles import ParticleSolver
-from .stats import CellStats
+from .checkpoint import Progress, read_checkpoint
+from .config import Scene, check_options
+from .handlers import Checkpoints, Clock, Diagnostics, Frames, Snapshots, Statistics
+from .io import Outputs, RunFile, output_error
+from .methods import make_solver  # also where tests and benchmarks build a solver
+from .runtime import Result, SimulationError, check_stop, init, initialized, stats_of
+from .solver import Solver
 
-ARCHS = {"cpu": ti.cpu, "cuda": ti.cuda}
-FLUSH_SECONDS = 5.0  # per-step diagnostics reach the file at least this often (and at every checkpoint)
-
-
-class SimulationError(RuntimeError):
-    """The run went wrong in a way the user can fix (unstable scheme, too many particles)."""
-
-
-class Stopped(SimulationError):
-    """SIGTERM or SIGINT arrived: the run stopped between two steps, its output closed and marked
-    incomplete. ``status``: the exit status a shell gives for that signal (143, 130)."""
-
-    def __init__(self, message: str, status: int):
-        super().__init__(message)
-        self.status = status
-
-
-_STOP: dict = {"signal": None}  # set by the handlers of stop_on_signals(), read between steps
-
-
-@contextlib.contextmanager
-def stop_on_signals():
-    """SIGTERM and SIGINT set a flag that the run checks between steps (and after Taichi's start and
-    the kernels' compilation), instead of raising wherever Python happens to be; handlers restored after."""
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-    def handler(signum, frame):
-        if _STOP["signal"] is not None:  # asked twice: stop at once, the default way
-            signal.signal(signum, signal.SIG_DFL)
-            os.kill(os.getpid(), signum)
-        _STOP["signal"] = signum
-
-    _STOP["signal"] = None
-    old = {s: signal.signal(s, handler) for s in (signal.SIGTERM, signal.SIGINT)}
-    try:
-        yield
-    finally:
-        for s, h in old.items():
-            signal.signal(s, h)
-        _STOP["signal"] = None
-
-
-def check_stop(where: str = " before the first step", rf=None, checkpoint: Path | None = None) -> None:
-    """Raise :class:`Stopped` if a signal arrived: ``rf`` closed and marked incomplete with the reason,
-    and the message names the latest checkpoint only if there is one."""
-    signum = _STOP["signal"]
-    if signum is None:
-        return
-    name = signal.Signals(signum).name
-    if rf is not None:
-        rf.close(error=f"stopped by {name}{where}")
-    msg = f"stopped by {name}{where}"
-    msg += f"; {rf.path} is marked incomplete" if rf is not None else ""
-    msg += f"; resume with --restart {checkpoint}" if checkpoint is not None else ""
-    raise Stopped(msg, 128 + signum)
-
-
-def init(arch: str = "cpu", threads: int | None = None) -> None:
-    """Start Taichi on ``arch`` ('cpu' or 'cuda'); refuse a backend that is absent or unsupported.
-
-    Literals in kernels are f64 (``default_fp``); solvers cast them to their own precision.
-    """
-    if arch not in ARCHS:
-        raise ConfigError(f"backend '{arch}' is not supported: use --arch cpu or --arch cuda")
-    if threads is not None and threads < 1:
-        raise ConfigError(f"threads = {threads}: give at least 1 CPU thread")
-    if arch == "cuda" and not _cuda_driver_present():
-        raise ConfigError("the 'cuda' backend is not available on this machine (no CUDA driver): run with --arch cpu")
-    kw = {"cpu_max_num_threads": threads} if threads else {}
-    with contextlib.redirect_stdout(io.StringIO()):  # ti.init prints "[Taichi] Starting on arch=..." unasked
-        ti.init(arch=ARCHS[arch], default_fp=ti.f64, offline_cache=True, log_level=ti.WARN, **kw)
-    if ti.lang.impl.current_cfg().arch != ARCHS[arch]:
-        raise ConfigError(f"the '{arch}' backend is not available on this machine: run with --arch cpu")
-
-
-def _cuda_driver_present() -> bool:
-    try:
-        ctypes.CDLL("libcuda.so.1")
-    except OSError:
-        return False
-    return True
-
-
-def _initialized() -> bool:
-    return ti.lang.impl.get_runtime().prog is not None
+COMPARED = ("mass", "min_density", "negative_cells")  # diagnostics of the method run alongside, as compare_*
 
 
 @dataclass(frozen=True)
-class Stats:
-    """Per-row, per-cell statistics; mean and variance in number density (particles per volume)."""
+class RunOptions:
+    """How :func:`run` runs a scene, beyond the scene and its output folder."""
 
-    mean: np.ndarray
-    variance: np.ndarray
-    skewness: np.ndarray
-    kurtosis: np.ndarray
-    n_samples: np.ndarray
-    histogram: np.ndarray | None = None  # particles per cell, bins hist_lo … (one particle wide)
-    hist_lo: int | None = None
-
-
-@dataclass(frozen=True)
-class Result:
-    scene: Scene
-    times: np.ndarray
-    cell_volume: float
-    stats: Stats
-    diagnostics: dict[str, np.ndarray] = field(repr=False)
-    final_density: np.ndarray = field(repr=False)  # every member at the end, (ensemble, *cells)
-    wall_time: float = 0.0
-    regrids: list[dict] = field(default_factory=list, repr=False)  # hybrid: one record per regrid
-    timing: dict[str, float] = field(default_factory=dict)  # seconds per part of the run
-    frames: list[Path] = field(default_factory=list)  # PNG frames written
-    written: dict[str, Path] = field(default_factory=dict)  # every file or folder written, by what it holds
-    rows: list[dict] = field(default_factory=list, repr=False)  # statistics rows with their accumulators
-    chunks: dict = field(default_factory=dict)  # distributed runs: chunk count and the retried chunks
-    path: Path | None = None
-
-
-def make_solver(scene: Scene, ppc: np.ndarray, member0: int = 0):
-    """The solver object for ``scene.method``, initialised from ``ppc`` particles per cell; its
-    members are members ``member0 …`` of the whole ensemble (chunks of a distributed run)."""
-    grid = Grid.from_scene(scene)
-    real = ti.f32 if scene.precision == "f32" else ti.f64
-    common = dict(grid=grid, dt=scene.dt, ensemble=scene.ensemble, seed=scene.seed, real=real, member0=member0)
-    if scene.method == "particle":
-        capacity = ParticleSolver.capacity_for(grid, ppc)  # its memory was checked with the scene
-        solver = ParticleSolver(capacity=capacity, **common)
-        solver.initialize(ppc, exact_uniform=scene.particle_init == "exact_uniform")
-        return solver
-    gaussian = "gaussian" in (scene.method, scene.spde if scene.method == "hybrid" else None)
-    mean_ghosts = scene.method == "hybrid" and scene.ghost_profile == "mean"  # ghosts read q̄
-    solver = SPDESolver(gaussian=gaussian, track_mean=mean_ghosts, **common)
-    solver.initialize(ppc)
-    if scene.method == "hybrid":
-        solver = HybridSolver(solver, scene.regrid, scene.regrid_interval, scene.seed, scene.ghost_profile,
-                              scene.particle_substeps)
-        solver.initialize()
-    return solver
-
-
-@dataclass
-class _Progress:
-    """What a run has produced so far: enough, with the solver states, to resume it exactly."""
-
-    step: int = 0
-    rows: list = field(default_factory=list)  # statistics rows (dicts of arrays)
-    times: list = field(default_factory=list)  # their times
-    diag: dict = field(default_factory=lambda: {"time": []})  # per step: every key the solvers report
-    frames: dict = field(default_factory=lambda: {"time": [], "negative_cells": []})  # per frame
-    pooled: dict | None = None  # stationary runs: the pooled accumulator's state
-    timing: dict = field(default_factory=dict)  # seconds per part of the run
+    progress: bool | None = None  # a progress bar on stderr (None: when stderr is a terminal)
+    arch: str = "cpu"  # the Taichi backend, if Taichi is not started yet
+    threads: int | None = None  # CPU threads, if Taichi is not started yet (None: all cores)
+    frames: bool | None = None  # PNG frames at the output times (with an output; None: yes)
+    movie: bool = False  # also scene.movie_frames evenly spaced frames and an MP4
+    snapshots: bool | None = None  # openPMD snapshots of member 0, 2D/3D (with an output; None: yes)
+    checkpoint_every: int = 0  # steps between checkpoints (0: none)
+    restart: Path | None = None  # the checkpoint to continue from
+    member0: int = 0  # the global index of the first member (a chunk of a larger ensemble)
 
 
 def run(scene: Scene, out: str | Path | None = None, progress: bool | None = None,
@@ -213,219 +56,205 @@ def run(scene: Scene, out: str | Path | None = None, progress: bool | None = Non
 
     Every path lies inside ``out`` (:class:`ti_dk.io.Outputs`); the run holds an exclusive lock on
     it, so a second run there is refused, and replaces a complete result only with ``overwrite``.
-    A signal seen by :func:`stop_on_signals` stops it between steps (:class:`Stopped`); an I/O
-    failure raises :class:`ti_dk.io.OutputError`; both leave the file marked incomplete.
+    A signal seen by :func:`ti_dk.runtime.stop_on_signals` stops it between steps
+    (:class:`ti_dk.runtime.Stopped`); an I/O failure raises :class:`ti_dk.io.OutputError`; both
+    leave the file marked incomplete.
     """
     check_options(scene, out=out, threads=threads, checkpoint_every=checkpoint_every, restart=restart, movie=movie)
+    opts = RunOptions(progress, arch, threads, frames, movie, snapshots, checkpoint_every,
+                      Path(restart) if restart is not None else None, member0)
     if out is None:
-        return _run(scene, None, progress, arch, threads, frames, movie, snapshots, checkpoint_every, restart, member0)
+        return _run(scene, None, opts)
     outputs = Outputs.of(out, scene)
     with outputs.claim(overwrite, fresh=restart is None):
         try:
-            return _run(scene, outputs, progress, arch, threads, frames, movie, snapshots, checkpoint_every, restart,
-                        member0)
+            return _run(scene, outputs, opts)
         except OSError as exc:  # disk full, quota, permission: the run file is already closed
             raise output_error(outputs.out, exc) from None
 
 
-def _run(scene: Scene, outputs_: Outputs | None, progress, arch, threads, frames, movie, snapshots, checkpoint_every,
-         restart, member0) -> Result:
+def _run(scene: Scene, outputs: Outputs | None, opts: RunOptions) -> Result:
     """The time loop of :func:`run`, on checked options and a claimed output."""
-    if not _initialized():
-        init(arch, threads)
+    if not initialized():
+        init(opts.arch, opts.threads)
     check_stop()
     wall0 = time.perf_counter()
+    solver, other = _solvers(scene, opts.member0)
+    prog = read_checkpoint(opts.restart, scene, solver, other) if opts.restart is not None else Progress()
+    ctl = Controller(scene, solver, other, outputs, prog, opts)
+    ctl.clock.add("setup", wall0)  # solvers built and initialised (their kernels compiled), checkpoint read
+    show = sys.stderr.isatty() if opts.progress is None else opts.progress
+    try:
+        if opts.restart is None:
+            ctl.record(0)
+        with StepBar(scene, prog.step, show, ctl.clock) as bar:
+            for n in range(prog.step, scene.n_steps):
+                check_stop(f" at step {n} of {scene.n_steps}", ctl.rf, ctl.checkpoints.latest)
+                bar.starting()
+                ctl.advance(n)
+                ctl.record(n + 1)
+                bar.stepped(n + 1)
+        if opts.movie:
+            ctl.make_movie()
+    except OverflowError as exc:
+        if ctl.rf:
+            ctl.rf.close(time.perf_counter() - wall0, error=str(exc))
+        raise SimulationError(str(exc)) from None
+    except BaseException as exc:
+        if ctl.rf:
+            _close_quietly(ctl.rf, time.perf_counter() - wall0, f"{type(exc).__name__}: {exc}")
+        raise
+    return ctl.finish(time.perf_counter() - wall0)
+
+
+def _solvers(scene: Scene, member0: int) -> tuple[Solver, Solver | None]:
+    """The scene's solver and that of the method run alongside (``scene.compare``), if any."""
     ppc = scene.initial_ppc
     try:
         solver = make_solver(scene, ppc, member0)
         other = make_solver(dataclasses.replace(scene, method=scene.compare), ppc, member0) if scene.compare else None
     except OverflowError as exc:
         raise SimulationError(str(exc)) from None
-    prog = _Progress()
-    if restart is not None:
-        prog = _read_checkpoint(Path(restart), scene, solver, other)
-    frames = outputs_ is not None and (frames is not False or movie)  # 1D: moment profiles
-    snapshots = outputs_ is not None and scene.dim >= 2 and snapshots is not False  # snapshots: 2D and 3D
-    hist = scene.histogram
-    rf = RunFile(outputs_.run_file, scene, hist[1] - hist[0] + 1 if hist else None) if outputs_ else None
-    if rf:  # a restarted run writes what the checkpoint holds first: the file ends up the same
-        for t, row in zip(prog.times, prog.rows):
-            rf.write_row(t, row)
-    sink = _DiagnosticsSink(rf, prog.diag)
-    sink.flush(force=True)
-    writer = None
-    written = {"statistics and diagnostics": rf.path} if rf else {}
-    if frames:
-        from .render import FrameWriter
+    return solver, other
 
-        writer = FrameWriter(outputs_.frames, _renderer(scene, ppc, other))
-        writer.files = [writer.dir / f"frame_{k:04d}.png" for k in range(len(prog.frames["time"]))]
-        written["frames"] = writer.dir
-    stationary = scene.t_equil is not None
-    n_equil = round(scene.t_equil / scene.dt) if stationary else 0
-    pooled = CellStats(scene.cells, scene.cell_volume, hist)
-    if prog.pooled:
-        pooled.load_state(prog.pooled)
-    outputs = set(scene.output_steps)
-    profile = scene.dim == 1  # 1D frames draw the ensemble's statistics: rows at every frame step
-    frame_steps = set(scene.output_steps) | ({0} if frames and not profile else set())
-    if movie and not stationary:
-        frame_steps |= {round(k * scene.n_steps / scene.movie_frames) for k in range(scene.movie_frames + 1)}
-    timing = prog.timing
-    for part in ("setup", "compile", "statistics", "render", "io"):
-        timing.setdefault(part, 0.0)
 
-    def clock(part: str, t0: float) -> float:
-        t1 = time.perf_counter()
-        timing[part] = timing.get(part, 0.0) + t1 - t0
-        return t1
+class Controller:
+    """One run: its solvers (``other``: the method run alongside), the clock of its parts and its
+    output handlers, asked in order after every step whether they are due."""
 
-    def record(n: int) -> None:
+    def __init__(self, scene: Scene, solver: Solver, other: Solver | None, outputs: Outputs | None,
+                 prog: Progress, opts: RunOptions):
+        self.scene, self.solver, self.other = scene, solver, other
+        self.outputs = outputs  # every path the run writes, or None
+        self.clock = Clock(prog.timing, solver)  # seconds per part of the run
+        self.rf = RunFile.of(outputs, scene) if outputs else None  # statistics and diagnostics
+        frames = outputs is not None and (opts.frames is not False or opts.movie)
+        steps = _frame_steps(scene, frames, opts.movie)
+        self.statistics = Statistics(scene, solver, self.rf, prog, steps if frames and scene.dim == 1 else ())
+        self.diagnostics = Diagnostics(self.rf, prog.diag, self.statistics)
+        writer = _frame_writer(outputs, scene, other) if frames else None
+        self.frames = Frames(scene, solver, other, writer, steps, prog.frames, self.statistics)
+        draw_snapshots = outputs is not None and scene.dim >= 2 and opts.snapshots is not False
+        self.snapshots = Snapshots(scene, solver, outputs.snapshots if draw_snapshots else None)
+        every = opts.checkpoint_every
+        self.checkpoints = Checkpoints(scene, (solver, other), outputs.checkpoint if outputs and every else None,
+                                       every, self.progress, self.diagnostics, opts.restart)
+        self.handlers = (self.statistics, self.frames, self.snapshots, self.diagnostics, self.checkpoints)
+        self.written = self._written()  # every file or folder written, by what it holds
+
+    def _written(self) -> dict[str, Path]:
+        where = {"statistics and diagnostics": self.rf and self.rf.path,
+                 "frames": self.frames.writer and self.frames.writer.dir,
+                 "openPMD snapshots": self.snapshots.directory, "checkpoint": self.checkpoints.path}
+        return {what: path for what, path in where.items() if path}
+
+    def advance(self, n: int) -> None:
+        """Step ``n`` → ``n + 1`` of both solvers; their diagnostics kept; a NaN mass refused."""
         t0 = time.perf_counter()
-        t = n * scene.dt
-        if stationary:
-            if n >= n_equil and (n - n_equil) % scene.sample_every == 0:
-                pooled.add(solver.density())
-            row = pooled.row() if n == scene.n_steps else None
-        elif n in outputs or (frames and profile and n in frame_steps):
-            cs = CellStats(scene.cells, scene.cell_volume, hist)
-            cs.add(solver.density())
-            row = cs.row()
-        else:
-            row = None
-        t0 = clock("statistics", t0)
-        if frames and n in frame_steps and profile:
-            region = solver.region().mean(axis=0) if isinstance(solver, HybridSolver) else None
-            writer.write(t, row, region)
-            prog.frames["time"].append(t)
-            prog.frames["negative_cells"].append(int((solver.density() < 0).sum()))  # all members
-            t0 = clock("render", t0)
-        elif frames and n in frame_steps:
-            panels = _panels(scene, solver, other)
-            writer.write(t, panels)
-            prog.frames["time"].append(t)
-            prog.frames["negative_cells"].append(int((panels[0].ppc < 0).sum()))
-            if other:
-                prog.frames.setdefault("compare_negative_cells", []).append(int((panels[1].ppc < 0).sum()))
-            t0 = clock("render", t0)
-        if snapshots and n in outputs:
-            _snapshot(outputs_.snapshots, n, scene, solver)
-        if row is not None and n in outputs:
-            prog.rows.append(row)
-            prog.times.append(t)
-            if rf:
-                rf.write_row(t, row)
-        sink.flush(force=row is not None)
-        clock("io", t0)
+        self.solver.step(n)
+        t0 = self.clock.add("solver", t0)
+        d = self.solver.diagnostics()
+        if self.other:
+            self.other.step(n)
+            self.clock.add("compare", t0)
+            d |= {f"compare_{k}": v for k, v in self.other.diagnostics().items() if k in COMPARED}
+        if not math.isfinite(d["mass"]):
+            raise SimulationError(
+                f"the density became NaN or infinite at step {n + 1} (t = {(n + 1) * self.scene.dt:.4g}): "
+                f"the scheme is unstable at C = {self.scene.C}; lower C")
+        self.diagnostics.append((n + 1) * self.scene.dt, d)
 
-    show = sys.stderr.isatty() if progress is None else progress
-    ckpt = outputs_.checkpoint if outputs_ and checkpoint_every else None
-    latest = Path(restart) if restart is not None else None  # the checkpoint a stopped run can resume from
-    if snapshots:
-        written["openPMD snapshots"] = outputs_.snapshots
-    if ckpt:
-        written["checkpoint"] = ckpt
-    clock("setup", wall0)  # solvers built and initialised (their kernels compiled), checkpoint read
-    label = f"{scene.name}/{scene.method}"
-    try:
-        if restart is None:
-            record(0)
-        with tqdm(total=scene.n_steps, initial=prog.step, disable=not show, unit="step",
-                  desc=f"{label}: compiling", file=sys.stderr, mininterval=0.5) as bar:
-            first = True  # the first step compiles the step kernels: timed as "compile", not in the ETA
-            for n in range(prog.step, scene.n_steps):
-                check_stop(f" at step {n} of {scene.n_steps}", rf, latest)
+    def record(self, n: int) -> None:
+        """After step ``n``: every handler that is due writes, its time counted to its part."""
+        for handler in self.handlers:
+            if handler.due(n):
                 t0 = time.perf_counter()
-                if first:
-                    before, t_first = _parts(timing, solver), t0
-                solver.step(n)
-                t0 = clock("solver", t0)
-                d = solver.diagnostics()
-                if other:
-                    other.step(n)
-                    clock("compare", t0)
-                    d |= {f"compare_{k}": v for k, v in other.diagnostics().items()
-                          if k in ("mass", "min_density", "negative_cells")}
-                if not math.isfinite(d["mass"]):
-                    raise SimulationError(
-                        f"the density became NaN or infinite at step {n + 1} (t = {(n + 1) * scene.dt:.4g}): "
-                        f"the scheme is unstable at C = {scene.C}; lower C")
-                prog.diag["time"].append((n + 1) * scene.dt)
-                for k, v in d.items():
-                    prog.diag.setdefault(k, []).append(v)
-                record(n + 1)
-                prog.step = n + 1
-                if ckpt and prog.step % checkpoint_every == 0 and prog.step < scene.n_steps:
-                    t0 = time.perf_counter()
-                    prog.pooled = pooled.state() if stationary else None
-                    _write_checkpoint(ckpt, scene, solver, other, prog)
-                    latest = ckpt
-                    sink.flush(force=True)
-                    clock("io", t0)
-                if not first:
-                    bar.update()
-                else:
-                    first = False
-                    for k, v in _parts(timing, solver).items():  # move the first step into "compile"
-                        (solver.timing if k in getattr(solver, "timing", {}) else timing)[k] -= v - before.get(k, 0.0)
-                    clock("compile", t_first)
-                    bar.set_description(label, refresh=False)
-                    bar.reset()  # restart the rate and ETA clock after compilation
-                    bar.initial = bar.n = bar.last_print_n = prog.step
-                    bar.refresh()
-        if movie and writer:
+                handler.write(n)
+                self.clock.add(handler.part, t0)
+
+    def progress(self, n: int) -> Progress:
+        """What the run has produced by step ``n`` (a checkpoint's content, with the solver states)."""
+        st = self.statistics
+        return Progress(step=n, rows=st.rows, times=st.times, diag=self.diagnostics.diag, frames=self.frames.log,
+                        pooled=st.pooled_state(), timing=self.clock.parts)
+
+    def make_movie(self) -> None:
+        """The MP4 of every frame."""
+        if self.frames.writer:
             t0 = time.perf_counter()
-            written["movie"] = writer.movie(outputs_.movie)
-            clock("render", t0)
-    except OverflowError as exc:
-        if rf:
-            rf.close(time.perf_counter() - wall0, error=str(exc))
-        raise SimulationError(str(exc)) from None
-    except BaseException as exc:
-        if rf:
-            _close_quietly(rf, time.perf_counter() - wall0, f"{type(exc).__name__}: {exc}")
-        raise
-    wall = time.perf_counter() - wall0
-    if hasattr(solver, "timing"):  # the hybrid splits its step into SPDE, particles and regrid
-        timing.update({k: v for k, v in solver.timing.items()})
-        timing.pop("solver", None)
-    timing = {k: timing[k] for k in TIMING_ORDER if k in timing}  # the parts in step order
-    timing["other"] = wall - sum(timing.values())  # progress bar, diagnostics, closing files
-    timing["total"] = wall
-    regrids = getattr(solver, "regrids", [])
-    if rf:
-        rf.write_table("regrid", regrids)
-        if frames:
-            rf.write_table("frames", [dict(zip(prog.frames, v)) for v in zip(*prog.frames.values())])
-        rf.h5.attrs["timing"] = json.dumps(timing)
-        rf.close(wall)
-    stats = stats_of(prog.rows, hist)
-    return Result(scene=scene, times=np.array(prog.times), cell_volume=scene.cell_volume, stats=stats,
-                  diagnostics={k: np.asarray(v) for k, v in prog.diag.items()}, final_density=solver.density(),
-                  wall_time=wall, path=rf.path if rf else None, regrids=regrids, timing=timing,
-                  frames=list(writer.files) if writer else [], rows=prog.rows, written=written)
+            self.written["movie"] = self.frames.writer.movie(self.outputs.movie)
+            self.clock.add("render", t0)
+
+    def finish(self, wall: float) -> Result:
+        """Close the run file (marked complete) and return the result."""
+        timing = self.clock.result(wall)
+        regrids = list(self.solver.regrids)
+        if self.rf:
+            self.rf.write_table("regrid", regrids)
+            if self.frames.writer:
+                self.rf.write_table("frames", self.frames.table())
+            self.rf.annotate("timing", timing)
+            self.rf.close(wall)
+        sc, st = self.scene, self.statistics
+        return Result(scene=sc, times=np.array(st.times), cell_volume=sc.cell_volume,
+                      stats=stats_of(st.rows, sc.histogram),
+                      diagnostics={k: np.asarray(v) for k, v in self.diagnostics.diag.items()},
+                      final_density=self.solver.density(), wall_time=wall, path=self.rf.path if self.rf else None,
+                      regrids=regrids, timing=timing, frames=self.frames.files(), rows=st.rows, written=self.written)
 
 
-TIMING_ORDER = ("setup", "compile", "regrid", "spde", "particles", "solver", "compare", "statistics", "render", "io")
+class StepBar:
+    """The progress bar of the steps; the first step, which compiles the step kernels, is timed as
+    ``compile`` and left out of the rate and the ETA."""
+
+    def __init__(self, scene: Scene, start: int, show: bool, clock: Clock):
+        self.label = f"{scene.name}/{scene.method}"
+        self.bar = tqdm(total=scene.n_steps, initial=start, disable=not show, unit="step",
+                        desc=f"{self.label}: compiling", file=sys.stderr, mininterval=0.5)
+        self.clock = clock  # where the first step's time moves to "compile"
+        self.first = True  # no step done yet
+        self.before: dict[str, float] = {}  # the parts' seconds before the first step
+        self.t_first = 0.0  # when the first step began
+
+    def __enter__(self) -> "StepBar":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.bar.close()
+
+    def starting(self) -> None:
+        """A step begins."""
+        if self.first:
+            self.t_first = time.perf_counter()
+            self.before = self.clock.all()
+
+    def stepped(self, step: int) -> None:
+        """``step`` steps are done (the handlers included)."""
+        if not self.first:
+            self.bar.update()
+            return
+        self.first = False
+        self.clock.compiled(self.before, self.t_first)
+        self.bar.set_description(self.label, refresh=False)
+        self.bar.reset()  # restart the rate and ETA clock after compilation
+        self.bar.initial = self.bar.n = self.bar.last_print_n = step
+        self.bar.refresh()
 
 
-def _parts(timing: dict, solver) -> dict[str, float]:
-    """Seconds spent so far in each part of the run, the hybrid's own parts included."""
-    return timing | getattr(solver, "timing", {})
+def _frame_steps(scene: Scene, frames: bool, movie: bool) -> set[int]:
+    """The steps that get a frame: the output steps (and step 0 in 2D/3D), plus evenly spaced ones
+    for a movie (not for a stationary scene)."""
+    steps = set(scene.output_steps) | ({0} if frames and scene.dim > 1 else set())
+    if movie and scene.t_equil is None:
+        steps |= {round(k * scene.n_steps / scene.movie_frames) for k in range(scene.movie_frames + 1)}
+    return steps
 
 
-def _renderer(scene: Scene, ppc: np.ndarray, other):
-    """What draws this scene's frames: moment profiles in 1D, density panels in 2D and 3D."""
-    if scene.dim == 1:
-        from .profiles import ProfileRenderer
+def _frame_writer(outputs: Outputs, scene: Scene, other: Solver | None):
+    """The frame writer of this scene: moment profiles in 1D, density panels in 2D and 3D."""
+    from .render import FrameWriter
 
-        return ProfileRenderer(scene)
-    from .render import Renderer, colour_max
-
-    methods = scene.method + (f" (left) and {scene.compare} (right)" if other and scene.dim == 2 else
-                              f" (top) and {scene.compare} (bottom)" if other else "")
-    return Renderer(scene.cells, scene.lengths, 1 + bool(other), colour_max(ppc),
-                    f"{scene.name}: {methods}, {'×'.join(map(str, scene.cells))} cells, member 0")
+    return FrameWriter(outputs.frames, _renderer(scene, scene.initial_ppc, other))
 
 
 def summary(result: Result) -> str:
@@ -479,22 +308,6 @@ def summary(result: Result) -> str:
     return "\n".join(lines)
 
 
-class _DiagnosticsSink:
-    """Per-step diagnostics on their way to the run file: written with every statistics row, at
-    every checkpoint and at least every ``FLUSH_SECONDS``, so a killed run keeps them up to then."""
-
-    def __init__(self, rf: RunFile | None, diag: dict):
-        self.rf, self.diag, self.done, self.last = rf, diag, 0, time.monotonic()
-
-    def flush(self, force: bool = False) -> None:
-        if self.rf is None or not (force or time.monotonic() - self.last > FLUSH_SECONDS):
-            return
-        n = len(self.diag["time"])
-        if n > self.done:
-            self.rf.write_diagnostics({k: v[self.done:] for k, v in self.diag.items()})
-        self.done, self.last = n, time.monotonic()
-
-
 def _close_quietly(rf: RunFile, wall: float, error: str) -> None:
     """Mark ``rf`` incomplete on the way out of a failed run; a second failure (the disk still full)
     must not hide the first."""
@@ -504,172 +317,16 @@ def _close_quietly(rf: RunFile, wall: float, error: str) -> None:
         pass
 
 
-def stats_of(rows: list[dict], hist: tuple[int, int] | None) -> Stats:
-    """The rows stacked along time."""
-    stack = {k: np.stack([r[k] for r in rows]) for k in rows[0] if not k.startswith("acc_")}
-    return Stats(mean=stack["mean"], variance=stack["variance"], skewness=stack["skewness"],
-                 kurtosis=stack["kurtosis"], n_samples=stack["n_samples"], histogram=stack.get("histogram"),
-                 hist_lo=hist[0] if hist else None)
+def _renderer(scene: Scene, ppc: np.ndarray, other: Solver | None):
+    """What draws this scene's frames: moment profiles in 1D, density panels in 2D and 3D."""
+    if scene.dim == 1:
+        from .profiles import ProfileRenderer
 
+        return ProfileRenderer(scene)
+    from .render import Renderer, colour_max
 
-def _panels(scene: Scene, solver, other) -> list:
-    """Member 0 of each method as a frame panel, in particles per cell."""
-    from .render import Panel
+    methods = scene.method + (f" (left) and {scene.compare} (right)" if other and scene.dim == 2 else
+                              f" (top) and {scene.compare} (bottom)" if other else "")
+    return Renderer(scene.cells, scene.lengths, 1 + bool(other), colour_max(ppc),
+                    f"{scene.name}: {methods}, {'×'.join(map(str, scene.cells))} cells, member 0")
 
-    vol = scene.cell_volume
-    panels = [Panel(scene.method, solver.density()[0] * vol, getattr(solver, "boxes", [None])[0])]
-    if other:
-        panels.append(Panel(scene.compare, other.density()[0] * vol))
-    return panels
-
-
-def _snapshot(directory: Path, n: int, scene: Scene, solver) -> None:
-    """openPMD snapshot of member 0 at step ``n`` (the hybrid adds its region, particles and boxes)."""
-    region = positions = ids = boxes = None
-    if isinstance(solver, HybridSolver):
-        region = solver.region()[0]
-        st = solver.state()
-        k = int(st["n_real"][0])
-        positions = st["x"][0, :k]
-        ids = (st["pid"][0, :k, 0].astype(np.uint64) << np.uint64(32)) | st["pid"][0, :k, 1].astype(np.uint64)
-        boxes = np.array([(*lo, *hi) for lo, hi in solver.boxes[0]], dtype=np.int64).reshape(-1, 2 * scene.dim)
-    write_openpmd(directory, n, n * scene.dt, scene.dt, scene.grid,
-                  solver.density()[0], region, positions, ids, boxes)
-
-
-def _write_checkpoint(path: Path, scene: Scene, solver, other, prog: _Progress) -> None:
-    """Everything needed to resume at ``prog.step``; written to a temporary name, then renamed."""
-    states = {name: s.state() for name, s in (("solver", solver), ("compare", other)) if s is not None}
-    require_space(path, sum(v.nbytes for st in states.values() for v in st.values()))
-    with atomic_h5(path) as f:  # interrupted (SIGTERM): the previous checkpoint stays the latest
-        f.attrs["scene"] = scene_json(scene)
-        f.attrs["step"] = prog.step
-        f.attrs["timing"] = json.dumps(prog.timing | ({"hybrid": solver.timing} if hasattr(solver, "timing") else {}))
-        for name, st in states.items():
-            write_group(f, name, st)
-        f.create_dataset("times", data=np.array(prog.times, dtype=np.float64))
-        write_rows(f, prog.rows)
-        write_group(f, "diag", prog.diag)
-        write_group(f, "frames", prog.frames)
-        write_group(f, "pooled", prog.pooled or {})
-
-
-def _read_checkpoint(path: Path, scene: Scene, solver, other) -> _Progress:
-    """The progress a checkpoint holds, loaded into the solvers after :func:`_checkpoint_problem`
-    found nothing wrong with it; anything else is refused with one line."""
-    damaged = f"--restart {path}: damaged checkpoint"
-    try:
-        f = h5py.File(path, "r")
-    except OSError as exc:
-        raise ConfigError(f"--restart {path}: not a readable checkpoint ({str(exc).splitlines()[0]}); give a file "
-                          "written by --checkpoint-every") from None
-    with f:
-        try:
-            if "scene" not in f.attrs or "step" not in f.attrs:
-                raise ConfigError(f"--restart {path}: not a ti_dk checkpoint; give a file written by --checkpoint-every")
-            if not same_scene(f, scene):
-                raise ConfigError(f"--restart {path}: the checkpoint was written for other scene settings; "
-                                  "restart with the same scene, method and --set values")
-            states = {name: read_group(f[name]) for name in ("solver", "compare") if name in f}
-            timing = json.loads(f.attrs["timing"])
-            prog = _Progress(step=int(f.attrs["step"]), times=list(f["times"][()]), timing=timing, rows=read_rows(f),
-                             diag={k: list(v) for k, v in read_group(f["diag"]).items()},
-                             frames={k: list(v) for k, v in read_group(f["frames"]).items()},
-                             pooled=read_group(f["pooled"]) or None if "pooled" in f else None)
-        except (KeyError, ValueError, TypeError, OSError) as exc:
-            if isinstance(exc, ConfigError):
-                raise
-            raise ConfigError(f"{damaged} ({str(exc).splitlines()[0] if str(exc) else type(exc).__name__}); "
-                              "restart from another checkpoint or from the start") from None
-    try:
-        problem = _checkpoint_problem(scene, prog, states, {"solver": solver, "compare": other})
-    except (KeyError, IndexError, ValueError) as exc:  # a table missing or cut short
-        problem = f"{type(exc).__name__} {exc}"
-    if problem:
-        raise ConfigError(f"{damaged}: {problem}; restart from another checkpoint or from the start")
-    solver.load_state(states["solver"])
-    if other is not None:
-        other.load_state(states["compare"])
-    if "hybrid" in prog.timing:
-        solver.timing = prog.timing.pop("hybrid")
-    return prog
-
-
-_VARIABLE = ("x", "pid", "boxes")  # hybrid state whose length changes with the particles (and regrid_*)
-
-
-def _checkpoint_problem(scene: Scene, prog: _Progress, states: dict, solvers: dict) -> str | None:
-    """What is wrong with a checkpoint's content, or None: step and row counts, the state's keys,
-    shapes and types (against a fresh solver's), finite values, particles inside the domain and,
-    for the hybrid, in their region, and the mass the state holds against the diagnostics."""
-    step, n = prog.step, scene.n_steps
-    missing = {"time", "mass"} - set(prog.diag)
-    if missing:
-        return f"its diagnostics lack {', '.join(sorted(missing))}"
-    if not 0 < step < n:
-        return f"step {step} is outside 1 … {n - 1}"
-    if any(len(v) != step for v in prog.diag.values()) or not math.isclose(prog.diag["time"][-1], step * scene.dt,
-                                                                           rel_tol=1e-9):
-        return f"its per-step diagnostics do not end at step {step}"
-    rows = 0 if scene.t_equil is not None else sum(1 for s in scene.output_steps if s <= step)
-    if len(prog.rows) != rows or len(prog.times) != rows:
-        return f"it holds {len(prog.rows)} statistics rows where step {step} has {rows}"
-    for name, solver in solvers.items():
-        if solver is None:
-            continue
-        if name not in states:
-            return f"the {name} state is missing"
-        st, fresh = states[name], solver.state()
-        if set(st) != set(fresh):
-            return f"the {name} state has keys {sorted(st)}, not {sorted(fresh)}"
-        for k, v in st.items():
-            variable = k in _VARIABLE or k.startswith("regrid_")
-            if v.dtype != fresh[k].dtype or (v.shape != fresh[k].shape if not variable else v.ndim != fresh[k].ndim):
-                return f"{name}/{k} has shape {v.shape} {v.dtype}, not {fresh[k].shape} {fresh[k].dtype}"
-            if v.dtype.kind == "f" and not k.startswith("regrid_") and not np.isfinite(v).all():
-                return f"{name}/{k} holds NaN or infinite values"
-        problem = _state_problem(scene, name, st, solver, prog.diag)
-        if problem:
-            return problem
-    return None
-
-
-def _state_problem(scene: Scene, name: str, st: dict, solver, diag: dict) -> str | None:
-    """Particles inside the domain (and the hybrid's region), and the mass against the diagnostics."""
-    vol, lengths = scene.cell_volume, np.array(scene.lengths)
-    counts = st.get("n_alive", st.get("n_real"))
-    if counts is not None:
-        x = st["x"]
-        if counts.shape != (scene.ensemble,) or counts.min() < 0 or counts.max() > x.shape[-2]:
-            return f"{name}: particle counts {counts.tolist()[:4]} do not fit its {x.shape[-2]} slots"
-        live = np.arange(x.shape[-2])[None, :] < counts[:, None]
-        pos = x[live]
-        if pos.size and ((pos < 0).any() or (pos >= lengths).any()):
-            return f"{name}: particles lie outside the domain [0, {list(scene.lengths)})"
-    prefix = "" if name == "solver" else "compare_"
-    if "n_alive" in st:
-        mass = float(counts.sum())
-    else:
-        q = st["spde_q" if "spde_q" in st else "q"]
-        mass = float(q.astype(np.float64).sum() * vol)
-    if "n_real" in st:  # hybrid: covered cells hold exactly their particles, and the boxes cover the region
-        cells = np.minimum((pos / np.array(scene.dx)).astype(np.int64), np.array(scene.cells) - 1)
-        member = np.nonzero(live)[0]
-        covered = st["covered"].astype(bool)
-        if pos.size and not covered[(member, *cells.T)].all():
-            return f"{name}: particles lie outside the particle region"
-        count = np.zeros(covered.shape)
-        np.add.at(count, (member, *cells.T), 1)
-        if not np.allclose((st["spde_q"] * vol)[covered], count[covered], rtol=1e-6, atol=1e-6):
-            return f"{name}: the densities of the particle region differ from its particle counts"
-        region = np.zeros_like(covered)
-        for e, *b in st["boxes"]:
-            d = scene.dim
-            region[(e, *(slice(lo, hi) for lo, hi in zip(b[:d], b[d:])))] = True
-        if not np.array_equal(region, covered):
-            return f"{name}: the particle region differs from its boxes"
-    want = float(diag[prefix + "mass"][-1])
-    tol = 1e-5 if scene.precision == "f32" else 1e-9
-    if not math.isclose(mass, want, rel_tol=tol, abs_tol=tol):
-        return f"{name}: its state holds {mass:.10g} particles where the diagnostics say {want:.10g}"
-    return None
