@@ -3,7 +3,6 @@ from __future__ import annotations
 
 import contextlib
 import ctypes
-import dataclasses
 import io
 import json
 import math
@@ -161,23 +160,23 @@ class Result:
 
 
 def make_solver(scene: Scene, ppc: np.ndarray, member0: int = 0):
-    """The solver object for ``scene.method``, initialised from ``ppc`` particles per cell; its
+    """The solver object for ``scene.method.name``, initialised from ``ppc`` particles per cell; its
     members are members ``member0 …`` of the whole ensemble (chunks of a distributed run)."""
     grid = Grid.from_scene(scene)
-    real = ti.f32 if scene.precision == "f32" else ti.f64
-    common = dict(grid=grid, dt=scene.dt, ensemble=scene.ensemble, seed=scene.seed, real=real, member0=member0)
-    if scene.method == "particle":
+    real = ti.f32 if scene.method.precision == "f32" else ti.f64
+    common = dict(grid=grid, dt=scene.dt, ensemble=scene.method.ensemble, seed=scene.method.seed, real=real, member0=member0)
+    if scene.method.name == "particle":
         capacity = ParticleSolver.capacity_for(grid, ppc)  # its memory was checked with the scene
         solver = ParticleSolver(capacity=capacity, **common)
-        solver.initialize(ppc, exact_uniform=scene.particle_init == "exact_uniform")
+        solver.initialize(ppc, exact_uniform=scene.method.particle_init == "exact_uniform")
         return solver
-    gaussian = "gaussian" in (scene.method, scene.spde if scene.method == "hybrid" else None)
-    mean_ghosts = scene.method == "hybrid" and scene.ghost_profile == "mean"  # ghosts read q̄
+    gaussian = "gaussian" in (scene.method.name, scene.hybrid.spde if scene.method.name == "hybrid" else None)
+    mean_ghosts = scene.method.name == "hybrid" and scene.hybrid.ghost_profile == "mean"  # ghosts read q̄
     solver = SPDESolver(gaussian=gaussian, track_mean=mean_ghosts, **common)
     solver.initialize(ppc)
-    if scene.method == "hybrid":
-        solver = HybridSolver(solver, scene.regrid, scene.regrid_interval, scene.seed, scene.ghost_profile,
-                              scene.particle_substeps)
+    if scene.method.name == "hybrid":
+        solver = HybridSolver(solver, scene.hybrid.regrid, scene.hybrid.regrid_interval, scene.method.seed, scene.hybrid.ghost_profile,
+                              scene.hybrid.particle_substeps)
         solver.initialize()
     return solver
 
@@ -205,7 +204,7 @@ def run(scene: Scene, out: str | Path | None = None, progress: bool | None = Non
     set) pools every ``sample_every``-th step after ``t_equil`` into one row. With ``out``:
     ``<scene>_<method>.h5`` (statistics, diagnostics), by default PNG frames at the output times
     (``frames``: 2D/3D densities of member 0, 1D moment profiles; ``movie`` adds
-    ``scene.movie_frames`` evenly spaced frames and ``<scene>_<method>.mp4``) and, for 2D/3D
+    ``scene.output.movie_frames`` evenly spaced frames and ``<scene>_<method>.mp4``) and, for 2D/3D
     scenes, openPMD snapshots of member 0 (``snapshots``).
     ``checkpoint_every`` K writes ``<scene>_<method>_checkpoint.h5`` every K steps (atomically);
     ``restart`` continues from such a file, bit for bit as if never interrupted. ``member0``: the
@@ -238,15 +237,15 @@ def _run(scene: Scene, outputs_: Outputs | None, progress, arch, threads, frames
     ppc = scene.initial_ppc
     try:
         solver = make_solver(scene, ppc, member0)
-        other = make_solver(dataclasses.replace(scene, method=scene.compare), ppc, member0) if scene.compare else None
+        other = make_solver(scene.replace(method=scene.method.compare), ppc, member0) if scene.method.compare else None
     except OverflowError as exc:
         raise SimulationError(str(exc)) from None
     prog = _Progress()
     if restart is not None:
         prog = _read_checkpoint(Path(restart), scene, solver, other)
     frames = outputs_ is not None and (frames is not False or movie)  # 1D: moment profiles
-    snapshots = outputs_ is not None and scene.dim >= 2 and snapshots is not False  # snapshots: 2D and 3D
-    hist = scene.histogram
+    snapshots = outputs_ is not None and scene.grid.dim >= 2 and snapshots is not False  # snapshots: 2D and 3D
+    hist = scene.stats.histogram
     rf = RunFile(outputs_.run_file, scene, hist[1] - hist[0] + 1 if hist else None) if outputs_ else None
     if rf:  # a restarted run writes what the checkpoint holds first: the file ends up the same
         for t, row in zip(prog.times, prog.rows):
@@ -261,16 +260,16 @@ def _run(scene: Scene, outputs_: Outputs | None, progress, arch, threads, frames
         writer = FrameWriter(outputs_.frames, _renderer(scene, ppc, other))
         writer.files = [writer.dir / f"frame_{k:04d}.png" for k in range(len(prog.frames["time"]))]
         written["frames"] = writer.dir
-    stationary = scene.t_equil is not None
-    n_equil = round(scene.t_equil / scene.dt) if stationary else 0
-    pooled = CellStats(scene.cells, scene.cell_volume, hist)
+    stationary = scene.stats.t_equil is not None
+    n_equil = round(scene.stats.t_equil / scene.dt) if stationary else 0
+    pooled = CellStats(scene.grid.cells, scene.grid.cell_volume, hist)
     if prog.pooled:
         pooled.load_state(prog.pooled)
     outputs = set(scene.output_steps)
-    profile = scene.dim == 1  # 1D frames draw the ensemble's statistics: rows at every frame step
+    profile = scene.grid.dim == 1  # 1D frames draw the ensemble's statistics: rows at every frame step
     frame_steps = set(scene.output_steps) | ({0} if frames and not profile else set())
     if movie and not stationary:
-        frame_steps |= {round(k * scene.n_steps / scene.movie_frames) for k in range(scene.movie_frames + 1)}
+        frame_steps |= {round(k * scene.n_steps / scene.output.movie_frames) for k in range(scene.output.movie_frames + 1)}
     timing = prog.timing
     for part in ("setup", "compile", "statistics", "render", "io"):
         timing.setdefault(part, 0.0)
@@ -284,11 +283,11 @@ def _run(scene: Scene, outputs_: Outputs | None, progress, arch, threads, frames
         t0 = time.perf_counter()
         t = n * scene.dt
         if stationary:
-            if n >= n_equil and (n - n_equil) % scene.sample_every == 0:
+            if n >= n_equil and (n - n_equil) % scene.stats.sample_every == 0:
                 pooled.add(solver.density())
             row = pooled.row() if n == scene.n_steps else None
         elif n in outputs or (frames and profile and n in frame_steps):
-            cs = CellStats(scene.cells, scene.cell_volume, hist)
+            cs = CellStats(scene.grid.cells, scene.grid.cell_volume, hist)
             cs.add(solver.density())
             row = cs.row()
         else:
@@ -326,7 +325,7 @@ def _run(scene: Scene, outputs_: Outputs | None, progress, arch, threads, frames
     if ckpt:
         written["checkpoint"] = ckpt
     clock("setup", wall0)  # solvers built and initialised (their kernels compiled), checkpoint read
-    label = f"{scene.name}/{scene.method}"
+    label = f"{scene.name}/{scene.method.name}"
     try:
         if restart is None:
             record(0)
@@ -349,7 +348,7 @@ def _run(scene: Scene, outputs_: Outputs | None, progress, arch, threads, frames
                 if not math.isfinite(d["mass"]):
                     raise SimulationError(
                         f"the density became NaN or infinite at step {n + 1} (t = {(n + 1) * scene.dt:.4g}): "
-                        f"the scheme is unstable at C = {scene.C}; lower C")
+                        f"the scheme is unstable at C = {scene.time.C}; lower C")
                 prog.diag["time"].append((n + 1) * scene.dt)
                 for k, v in d.items():
                     prog.diag.setdefault(k, []).append(v)
@@ -400,7 +399,7 @@ def _run(scene: Scene, outputs_: Outputs | None, progress, arch, threads, frames
         rf.h5.attrs["timing"] = json.dumps(timing)
         rf.close(wall)
     stats = stats_of(prog.rows, hist)
-    return Result(scene=scene, times=np.array(prog.times), cell_volume=scene.cell_volume, stats=stats,
+    return Result(scene=scene, times=np.array(prog.times), cell_volume=scene.grid.cell_volume, stats=stats,
                   diagnostics={k: np.asarray(v) for k, v in prog.diag.items()}, final_density=solver.density(),
                   wall_time=wall, path=rf.path if rf else None, regrids=regrids, timing=timing,
                   frames=list(writer.files) if writer else [], rows=prog.rows, written=written)
@@ -416,26 +415,26 @@ def _parts(timing: dict, solver) -> dict[str, float]:
 
 def _renderer(scene: Scene, ppc: np.ndarray, other):
     """What draws this scene's frames: moment profiles in 1D, density panels in 2D and 3D."""
-    if scene.dim == 1:
+    if scene.grid.dim == 1:
         from .profiles import ProfileRenderer
 
         return ProfileRenderer(scene)
     from .render import Renderer, colour_max
 
-    methods = scene.method + (f" (left) and {scene.compare} (right)" if other and scene.dim == 2 else
-                              f" (top) and {scene.compare} (bottom)" if other else "")
-    return Renderer(scene.cells, scene.lengths, 1 + bool(other), colour_max(ppc),
-                    f"{scene.name}: {methods}, {'×'.join(map(str, scene.cells))} cells, member 0")
+    methods = scene.method.name + (f" (left) and {scene.method.compare} (right)" if other and scene.grid.dim == 2 else
+                              f" (top) and {scene.method.compare} (bottom)" if other else "")
+    return Renderer(scene.grid.cells, scene.grid.lengths, 1 + bool(other), colour_max(ppc),
+                    f"{scene.name}: {methods}, {'×'.join(map(str, scene.grid.cells))} cells, member 0")
 
 
 def summary(result: Result) -> str:
     """The end-of-run message: what ran, every method's negative cells, where the time went (in
     step order, compilation apart) and every file written."""
-    sc, d, E = result.scene, result.diagnostics, result.scene.ensemble
+    sc, d, E = result.scene, result.diagnostics, result.scene.method.ensemble
     members = f"{E:,} member{'s' * (E != 1)}"
     every = " (all members)" if E > 1 else ""
     t = result.times[-1] if len(result.times) else sc.n_steps * sc.dt
-    lines = [f"{sc.name}/{sc.method}: {sc.n_steps:,} steps of dt = {sc.dt:.4g} to t = {t:.4g}, {members}, "
+    lines = [f"{sc.name}/{sc.method.name}: {sc.n_steps:,} steps of dt = {sc.dt:.4g} to t = {t:.4g}, {members}, "
              f"{result.wall_time:.1f} s"]
     mass = f"{d['mass'][-1] / E:,.6g} particles{' per member' * (E > 1)}" if "mass" in d else None
 
@@ -450,17 +449,17 @@ def summary(result: Result) -> str:
         n = d["particles"][-1] / E
         where = f"{n:,.1f}" if E > 1 else f"{int(n):,}"
         where += f" particles{' per member' * (E > 1)} in the particle region"
-        if sc.regrid_interval == 0:
+        if sc.hybrid.regrid_interval == 0:
             covered = f": {result.regrids[0]['covered_cells'] / E:,.0f} cells{' per member' * (E > 1)}" \
                 if result.regrids else ""
             where += f" (fixed at the start{covered})"
         else:
             where += f" after {len(result.regrids):,} regrids"
         main.append(where)
-    lines.append(f"  {sc.method}: " + "; ".join(main))
-    if sc.compare and "compare_negative_cells" in d:
-        lines.append(f"  {sc.compare} (run alongside): {negative('compare_')}")
-    names = {"compile": "compile (first step)", "solver": sc.method}
+    lines.append(f"  {sc.method.name}: " + "; ".join(main))
+    if sc.method.compare and "compare_negative_cells" in d:
+        lines.append(f"  {sc.method.compare} (run alongside): {negative('compare_')}")
+    names = {"compile": "compile (first step)", "solver": sc.method.name}
     parts = [f"{names.get(k, k)} {v:.2f} s" for k, v in result.timing.items() if k != "total"]
     if parts:
         lines.append("time: " + ", ".join(parts) + f"; total {result.wall_time:.2f} s")
@@ -516,10 +515,10 @@ def _panels(scene: Scene, solver, other) -> list:
     """Member 0 of each method as a frame panel, in particles per cell."""
     from .render import Panel
 
-    vol = scene.cell_volume
-    panels = [Panel(scene.method, solver.density()[0] * vol, getattr(solver, "boxes", [None])[0])]
+    vol = scene.grid.cell_volume
+    panels = [Panel(scene.method.name, solver.density()[0] * vol, getattr(solver, "boxes", [None])[0])]
     if other:
-        panels.append(Panel(scene.compare, other.density()[0] * vol))
+        panels.append(Panel(scene.method.compare, other.density()[0] * vol))
     return panels
 
 
@@ -532,8 +531,8 @@ def _snapshot(directory: Path, n: int, scene: Scene, solver) -> None:
         k = int(st["n_real"][0])
         positions = st["x"][0, :k]
         ids = (st["pid"][0, :k, 0].astype(np.uint64) << np.uint64(32)) | st["pid"][0, :k, 1].astype(np.uint64)
-        boxes = np.array([(*lo, *hi) for lo, hi in solver.boxes[0]], dtype=np.int64).reshape(-1, 2 * scene.dim)
-    write_openpmd(directory, n, n * scene.dt, scene.dt, scene.grid,
+        boxes = np.array([(*lo, *hi) for lo, hi in solver.boxes[0]], dtype=np.int64).reshape(-1, 2 * scene.grid.dim)
+    write_openpmd(directory, n, n * scene.dt, scene.dt, Grid.from_scene(scene),
                   solver.density()[0], region, positions, ids, boxes)
 
 
@@ -611,7 +610,7 @@ def _checkpoint_problem(scene: Scene, prog: _Progress, states: dict, solvers: di
     if any(len(v) != step for v in prog.diag.values()) or not math.isclose(prog.diag["time"][-1], step * scene.dt,
                                                                            rel_tol=1e-9):
         return f"its per-step diagnostics do not end at step {step}"
-    rows = 0 if scene.t_equil is not None else sum(1 for s in scene.output_steps if s <= step)
+    rows = 0 if scene.stats.t_equil is not None else sum(1 for s in scene.output_steps if s <= step)
     if len(prog.rows) != rows or len(prog.times) != rows:
         return f"it holds {len(prog.rows)} statistics rows where step {step} has {rows}"
     for name, solver in solvers.items():
@@ -636,16 +635,16 @@ def _checkpoint_problem(scene: Scene, prog: _Progress, states: dict, solvers: di
 
 def _state_problem(scene: Scene, name: str, st: dict, solver, diag: dict) -> str | None:
     """Particles inside the domain (and the hybrid's region), and the mass against the diagnostics."""
-    vol, lengths = scene.cell_volume, np.array(scene.lengths)
+    vol, lengths = scene.grid.cell_volume, np.array(scene.grid.lengths)
     counts = st.get("n_alive", st.get("n_real"))
     if counts is not None:
         x = st["x"]
-        if counts.shape != (scene.ensemble,) or counts.min() < 0 or counts.max() > x.shape[-2]:
+        if counts.shape != (scene.method.ensemble,) or counts.min() < 0 or counts.max() > x.shape[-2]:
             return f"{name}: particle counts {counts.tolist()[:4]} do not fit its {x.shape[-2]} slots"
         live = np.arange(x.shape[-2])[None, :] < counts[:, None]
         pos = x[live]
         if pos.size and ((pos < 0).any() or (pos >= lengths).any()):
-            return f"{name}: particles lie outside the domain [0, {list(scene.lengths)})"
+            return f"{name}: particles lie outside the domain [0, {list(scene.grid.lengths)})"
     prefix = "" if name == "solver" else "compare_"
     if "n_alive" in st:
         mass = float(counts.sum())
@@ -653,7 +652,7 @@ def _state_problem(scene: Scene, name: str, st: dict, solver, diag: dict) -> str
         q = st["spde_q" if "spde_q" in st else "q"]
         mass = float(q.astype(np.float64).sum() * vol)
     if "n_real" in st:  # hybrid: covered cells hold exactly their particles, and the boxes cover the region
-        cells = np.minimum((pos / np.array(scene.dx)).astype(np.int64), np.array(scene.cells) - 1)
+        cells = np.minimum((pos / np.array(scene.grid.dx)).astype(np.int64), np.array(scene.grid.cells) - 1)
         member = np.nonzero(live)[0]
         covered = st["covered"].astype(bool)
         if pos.size and not covered[(member, *cells.T)].all():
@@ -664,12 +663,12 @@ def _state_problem(scene: Scene, name: str, st: dict, solver, diag: dict) -> str
             return f"{name}: the densities of the particle region differ from its particle counts"
         region = np.zeros_like(covered)
         for e, *b in st["boxes"]:
-            d = scene.dim
+            d = scene.grid.dim
             region[(e, *(slice(lo, hi) for lo, hi in zip(b[:d], b[d:])))] = True
         if not np.array_equal(region, covered):
             return f"{name}: the particle region differs from its boxes"
     want = float(diag[prefix + "mass"][-1])
-    tol = 1e-5 if scene.precision == "f32" else 1e-9
+    tol = 1e-5 if scene.method.precision == "f32" else 1e-9
     if not math.isclose(mass, want, rel_tol=tol, abs_tol=tol):
         return f"{name}: its state holds {mass:.10g} particles where the diagnostics say {want:.10g}"
     return None
