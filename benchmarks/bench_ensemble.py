@@ -14,7 +14,7 @@ from ti_dk import ensemble, load_scene
 def rate(scene, executor, **kw):
     t = time.perf_counter()
     ensemble.run(scene, executor, progress=False, **kw)
-    return scene.ensemble * scene.n_steps / (time.perf_counter() - t)
+    return scene.method.ensemble * scene.n_steps / (time.perf_counter() - t)
 
 
 def main():

@@ -10,7 +10,6 @@ seed-to-seed (block-to-block) scatter of the region cells' means.
     python benchmarks/hybrid_interface.py --members 100000 --profiles uniform linear mean
 """
 import argparse
-import dataclasses
 import math
 import time
 
@@ -32,8 +31,8 @@ def run_blocks(scene, blocks: int, seeds: bool):
     the same members under seeds 1, 2, …"""
     out = []
     for b in range(blocks):
-        sc = dataclasses.replace(scene, seed=b + 1) if seeds else scene
-        s = make_solver(sc, sc.initial_ppc, member0=0 if seeds else b * sc.ensemble)
+        sc = scene.replace(seed=b + 1) if seeds else scene
+        s = make_solver(sc, sc.initial_ppc, member0=0 if seeds else b * sc.method.ensemble)
         for n in range(sc.n_steps):
             s.step(n)
         out.append(s.density() * s.grid.cell_volume)
@@ -50,7 +49,7 @@ def chi2_sf(x: float, k: int) -> float:
 def report(counts, region, scene, steps, blocks):
     N = counts.shape[0]
     ppc0 = scene.initial_ppc
-    sub = scene.particle_substeps
+    sub = scene.hybrid.particle_substeps
     exact = theory.particle_counts_periodic(ppc0, 1.0, scene.dt / sub, steps * sub)
     brownian = theory.particle_counts_periodic(ppc0, 1.0, scene.dt, steps, clamp=False)
     k2, k4 = exact["variance"], (exact["kurtosis"] - 3) * exact["variance"] ** 2
@@ -58,8 +57,8 @@ def report(counts, region, scene, steps, blocks):
     z_mean = (mean - exact["mean"]) / np.sqrt(k2 / N)
     z_var = (var - k2) / np.sqrt((k4 + 2 * k2**2) / N)
     z_brown = (mean - brownian["mean"]) / np.sqrt(k2 / N)
-    linear = sub == 1 and scene.ghost_profile in ("mean", "uniform")  # the hybrid's own mean is known
-    hybrid = theory.hybrid_mean_1d(ppc0, region, scene.dt, steps, ghost_profile=scene.ghost_profile) if linear \
+    linear = sub == 1 and scene.hybrid.ghost_profile in ("mean", "uniform")  # the hybrid's own mean is known
+    hybrid = theory.hybrid_mean_1d(ppc0, region, scene.dt, steps, ghost_profile=scene.hybrid.ghost_profile) if linear \
         else np.full(len(ppc0), np.nan)
     z_hyb = (mean - hybrid) / np.sqrt(k2 / N)
     lines = ["cell  region  exact_mean  z_mean  exact_var  z_var  z_skew  z_kurt  z_mean_unclamped  "

@@ -39,7 +39,7 @@ def equilibrium(runs: Runs, tag: str, method: str, ppc: float, ensemble: int, se
 
 def _binomial_pmf(scene: ti_dk.Scene) -> np.ndarray:
     """The count in one cell of N uniform particles in M cells: Binomial(N, 1/M)."""
-    cells, total = math.prod(scene.cells), round(scene.initial_ppc.sum())
+    cells, total = math.prod(scene.grid.cells), round(scene.initial_ppc.sum())
     return theory.poisson_binomial_pmf(np.array([1 / cells]), np.array([total]))
 
 
@@ -84,7 +84,7 @@ def fig3(ensemble: int, out: Path, plt, ppcs: tuple[float, ...] = PPCS, runs: Ru
         data[m] = r
         axes[0].errorbar(r[:, 0], r[:, 1], yerr=r[:, 2], label=m, capsize=3, **STYLE[m])
         axes[1].errorbar(r[:, 0], r[:, 3], yerr=r[:, 4], label=m, capsize=3, **STYLE[m])
-    cells = math.prod(res.scene.cells)
+    cells = math.prod(res.scene.grid.cells)
     ppc = np.geomspace(1, 100, 60)
     exact = np.array([[theory.binomial_moments(int(round(cells * p)), 1 / cells)[k] for k in ("skewness", "kurtosis")]
                       for p in ppc])
@@ -103,11 +103,11 @@ def fig4(ensemble: int, out: Path, plt, runs: Runs | None = None) -> dict:
     fig, axes = plt.subplots(2, 2, figsize=(11, 7))
     results = {m: runs.get("fig4", "void1d", method=m, ensemble=ensemble) for m in (*METHODS, "hybrid")}
     scene = results["fv"].scene
-    x = (np.arange(scene.cells[0]) + 0.5) * scene.dx[0]
+    x = (np.arange(scene.grid.cells[0]) + 0.5) * scene.grid.dx[0]
     row = -1
     t = results["fv"].times[row]
-    exact = theory.particle_counts_periodic(scene.initial_ppc, scene.lengths, scene.dt, round(t / scene.dt))
-    vol = scene.cell_volume
+    exact = theory.particle_counts_periodic(scene.initial_ppc, scene.grid.lengths, scene.dt, round(t / scene.dt))
+    vol = scene.grid.cell_volume
     for m, res in results.items():
         st = res.stats
         prof = {"mean": st.mean[row] * vol, "variance": st.variance[row] * vol**2,
@@ -120,7 +120,7 @@ def fig4(ensemble: int, out: Path, plt, runs: Runs | None = None) -> dict:
     for ax, k in zip(axes.flat, ("mean", "variance", "skewness", "kurtosis")):
         ax.plot(x, exact[k], label="exact (Poisson-binomial)", **STYLE["exact"])
         ax.set(xlabel="x", ylabel=f"{k} (particles per cell)" if k in ("mean", "variance") else k,
-               title=f"{k}, t = {t:g}, {scene.ensemble} members")
+               title=f"{k}, t = {t:g}, {scene.method.ensemble} members")
     axes[0, 0].legend()
     axes[1, 1].set_ylim(0, 12)
     axes[1, 0].set_ylim(-1, 3)

@@ -30,7 +30,7 @@ class Run:
 
     @property
     def cell_volume(self) -> float:
-        return self.scene.cell_volume
+        return self.scene.grid.cell_volume
 
 
 def read_run(path: Path, scene: ti_dk.Scene) -> Run:

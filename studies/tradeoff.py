@@ -72,11 +72,11 @@ def ellipse_settings() -> list[Setting]:
 def void_error(res: Run | ti_dk.Result) -> dict[str, float]:
     """Per-moment RMS z over the low-density cells at the last output time, and their worst."""
     sc, t = res.scene, res.times[-1]
-    k = sc.particle_substeps if sc.method == "hybrid" else 1  # the particles' own step is Δt/k
+    k = sc.hybrid.particle_substeps if sc.method.name == "hybrid" else 1  # the particles' own step is Δt/k
     ppc0, dt, steps = sc.initial_ppc, sc.dt / k, round(t / sc.dt) * k
-    mean = theory.particle_counts_periodic(ppc0, sc.lengths, dt, steps)["mean"]
+    mean = theory.particle_counts_periodic(ppc0, sc.grid.lengths, dt, steps)["mean"]
     cells = (mean > 0.5) & (mean < 10)
-    exact, se = theory.void_reference(ppc0, sc.lengths[0], dt, steps, sc.ensemble, cells, replicas=100)
+    exact, se = theory.void_reference(ppc0, sc.grid.lengths[0], dt, steps, sc.method.ensemble, cells, replicas=100)
     vol = res.cell_volume
     est = {"mean": res.stats.mean[-1] * vol, "variance": res.stats.variance[-1] * vol**2,
            "skewness": res.stats.skewness[-1], "kurtosis": res.stats.kurtosis[-1]}
@@ -88,8 +88,8 @@ def void_error(res: Run | ti_dk.Result) -> dict[str, float]:
 def ellipse_error(res: Run | ti_dk.Result) -> dict[str, float]:
     """χ² per cell of a one-member run's last row against the exact particle mean and variance."""
     sc, t = res.scene, res.times[-1]
-    exact = theory.particle_counts_periodic(sc.initial_ppc, sc.lengths, sc.dt, round(t / sc.dt))
-    q = res.stats.mean[-1] * sc.cell_volume  # one member: the mean is its density
+    exact = theory.particle_counts_periodic(sc.initial_ppc, sc.grid.lengths, sc.dt, round(t / sc.dt))
+    q = res.stats.mean[-1] * sc.grid.cell_volume  # one member: the mean is its density
     chi2 = float(np.mean((q - exact["mean"]) ** 2 / exact["variance"]))
     return {"chi2": chi2, "error": abs(chi2 - 1.0)}
 
@@ -167,7 +167,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--ensemble", type=int, default=2000, help="void1d members")
     p.add_argument("--t-end", type=float, default=0.0025, help="void1d end time")
     p.add_argument("--cells", type=int, default=64, help="ellipse2d cells per axis")
-    p.add_argument("--ellipse-t-end", type=float, default=ti_dk.load_scene("ellipse2d").output_times[ELLIPSE_OUTPUT],
+    p.add_argument("--ellipse-t-end", type=float, default=ti_dk.load_scene("ellipse2d").stats.output_times[ELLIPSE_OUTPUT],
                    help=f"ellipse2d end time: the scene's output time number {ELLIPSE_OUTPUT + 1}")
     p.add_argument("--only", nargs="+", metavar="SETTING", help="run only these settings (labels as in the table)")
     p.add_argument("--rerun", action="store_true", help="run every setting again, even where its .h5 is there")

@@ -1,17 +1,19 @@
 """Scene loading, flat overrides and the one-line errors for bad input."""
+import dataclasses
 import warnings
+from pathlib import Path
 
 import pytest
 
 from ti_dk import ConfigError, available_scenes, load_scene
-from ti_dk.config import ClampWarning, parse_value
+from ti_dk.config import ClampWarning, HybridKeys, parse_value
 
 
 def test_scenes_load_and_override():
     assert {"equilibrium1d", "void1d", "ellipse2d"} <= set(available_scenes())
     s = load_scene("void1d", ppc=5, C=0.05, method="gaussian", ensemble=7, seed=3)
-    assert s.params["ppc"] == 5 and s.C == 0.05 and s.method == "gaussian" and s.ensemble == 7
-    assert s.dim == 1 and s.cells == (100,) and s.boundary == (("periodic", "periodic"),)
+    assert s.init.params["ppc"] == 5 and s.time.C == 0.05 and s.method.name == "gaussian" and s.method.ensemble == 7
+    assert s.grid.dim == 1 and s.grid.cells == (100,) and s.grid.boundary == (("periodic", "periodic"),)
     assert s.dt == pytest.approx(0.05 * 1e-4)
     assert s.n_steps == round(0.01 / s.dt)
     assert s.output_steps[-1] == s.n_steps
@@ -19,13 +21,13 @@ def test_scenes_load_and_override():
 
 def test_output_times_past_t_end_are_dropped():
     s = load_scene("void1d", t_end=0.0025)
-    assert s.output_times == (0.001, 0.0025)
+    assert s.stats.output_times == (0.001, 0.0025)
 
 
 def test_boundaries_per_axis_and_side():
     s = load_scene("ellipse2d", boundary=[["dirichlet", "neumann"], "periodic"], reservoir_ppc=[[4.0, 0.0], 0.0])
-    assert s.boundary == (("dirichlet", "neumann"), ("periodic", "periodic"))
-    assert s.reservoir_ppc == ((4.0, 0.0), (0.0, 0.0))
+    assert s.grid.boundary == (("dirichlet", "neumann"), ("periodic", "periodic"))
+    assert s.grid.reservoir_ppc == ((4.0, 0.0), (0.0, 0.0))
 
 
 @pytest.mark.parametrize(
@@ -56,7 +58,7 @@ def test_bad_input_says_what_to_change(name, overrides, message):
 
 
 def test_unstable_override_and_clamp_warning():
-    assert load_scene("void1d", C=1.2, allow_unstable=True).C == 1.2
+    assert load_scene("void1d", C=1.2, allow_unstable=True).time.C == 1.2
     with pytest.warns(ClampWarning, match="clamped"):
         load_scene("void1d", C=0.2, method="particle")
     with warnings.catch_warnings():
@@ -77,17 +79,19 @@ def test_parse_value():
 
 
 def test_every_key_declared_once_with_doc_and_defaults_from_regrid():
-    from ti_dk.config import INIT_KEYS, KEYS, Scene, keys_help
+    from ti_dk.config import INIT_KEYS, KEYS, SECTIONS, Scene, keys_help
     from ti_dk.regrid import RegridParams
 
-    fields = {f.name for f in __import__("dataclasses").fields(Scene)} - {"init_params"}
-    assert fields | set(INIT_KEYS) == set(KEYS)
+    fields = [f.metadata.get("flat") or f.name for cls in (*SECTIONS.values(), Scene)
+              for f in dataclasses.fields(cls) if "key" in f.metadata]
+    assert len(fields) == len(set(fields)) and set(fields) | set(INIT_KEYS) == set(KEYS)
     assert all(k.doc for k in KEYS.values())
     help_text = keys_help()
     assert all(f"  {name} " in help_text for name in KEYS)
+    assert help_text in (Path(__file__).parent.parent / "README.md").read_text()  # the README's key list
     s, rg = load_scene("ellipse2d", threshold=RegridParams().threshold), RegridParams()
-    assert (s.buffer, s.grid_efficiency, s.min_box, s.max_box) == (rg.buffer, rg.efficiency, rg.min_box, rg.max_box)
-    assert Scene.__dataclass_fields__["threshold"].default == rg.threshold
+    assert (s.hybrid.buffer, s.hybrid.grid_efficiency, s.hybrid.min_box, s.hybrid.max_box) == (rg.buffer, rg.efficiency, rg.min_box, rg.max_box)
+    assert HybridKeys().threshold == rg.threshold
 
 
 def test_set_values_take_the_keys_kind():
@@ -98,7 +102,7 @@ def test_set_values_take_the_keys_kind():
 
 @pytest.mark.parametrize("seed", [0, 2**31 - 1, 2**31, 2**32, 2**64 - 1])
 def test_every_unsigned_64_bit_seed_is_accepted(seed):
-    assert load_scene("void1d", seed=seed).seed == seed
+    assert load_scene("void1d", seed=seed).method.seed == seed
 
 
 def test_memory_and_work_estimates():
@@ -133,7 +137,7 @@ def test_python_callers_may_pass_tuples_and_numpy_numbers():
 
     s = load_scene("ellipse2d", cells=(16, np.int64(16)), lengths=(1.0, 2.0), seed=np.uint64(2**64 - 1),
                    boundary=(("neumann", "neumann"), "periodic"), C=np.float32(0.0625))
-    assert s.cells == (16, 16) and s.seed == 2**64 - 1 and s.boundary[0] == ("neumann", "neumann")
+    assert s.grid.cells == (16, 16) and s.method.seed == 2**64 - 1 and s.grid.boundary[0] == ("neumann", "neumann")
 
 
 @pytest.mark.parametrize("overrides, message", [  # load_scene's own hostile inputs (the CLI's are in test_scene)
@@ -154,3 +158,20 @@ def test_load_scene_refuses_with_one_line(overrides, message):
     with pytest.raises(ConfigError) as err:
         load_scene("ellipse2d", **overrides)
     assert message in str(err.value) and "\n" not in str(err.value)
+
+
+def test_sections_mirror_the_tables_and_flat_keys_still_work(tmp_path):
+    nested = tmp_path / "nested.toml"
+    nested.write_text('[grid]\ncells = [20]\n[init]\nname = "uniform"\nppc = 3\n[time]\nC = 0.1\n'
+                      '[method]\nname = "hybrid"\nensemble = 4\n[hybrid]\nthreshold = 2.0\n[output]\nmovie_frames = 5\n')
+    s = load_scene(nested, seed=9)
+    assert (s.method.name, s.method.ensemble, s.method.seed, s.time.C) == ("hybrid", 4, 9, 0.1)
+    assert (s.hybrid.threshold, s.output.movie_frames, s.init.params["ppc"]) == (2.0, 5, 3.0)
+    flat = tmp_path / "flat.toml"
+    flat.write_text('method = "hybrid"\nensemble = 4\nC = 0.1\nthreshold = 2.0\nmovie_frames = 5\n'
+                    '[grid]\ncells = [20]\n[init]\nname = "uniform"\nppc = 3\n')
+    assert load_scene(flat, seed=9, name="nested") == s
+    assert load_scene(nested, **s.flat()) == s and s.replace(ensemble=2).method.ensemble == 2
+    (tmp_path / "wrong.toml").write_text('[grid]\ncells = [20]\nC = 0.1\n[init]\nname = "uniform"\n')
+    with pytest.raises(ConfigError, match=r"\[grid\] C: this key belongs in \[time\]"):
+        load_scene(tmp_path / "wrong.toml")

@@ -13,7 +13,7 @@ class Flat(Solver):
     """A solver that never changes: four particles per cell in every member."""
 
     def __init__(self, scene, timing=None):
-        self.shape, self.vol = (scene.ensemble, *scene.cells), scene.cell_volume
+        self.shape, self.vol = (scene.method.ensemble, *scene.grid.cells), scene.grid.cell_volume
         if timing is not None:
             self.timing = timing
 

@@ -149,7 +149,7 @@ def test_interface_is_exact_in_mean_and_variance():
     z_mean, z_var = _z(counts, exact, region)
     assert np.abs(z_var).max() < 3.5 and abs(z_mean.mean()) < 1.5
     # skewness and kurtosis where the exact mean is 0.3–6 particles
-    exact, se = theory.void_reference(ppc0, 1.0, scene.dt, scene.n_steps, scene.ensemble,
+    exact, se = theory.void_reference(ppc0, 1.0, scene.dt, scene.n_steps, scene.method.ensemble,
                                       region & (exact["mean"] > 0.3) & (exact["mean"] < 6))
     cells = ~np.isnan(se["skewness"])
     d = counts[:, cells] - counts[:, cells].mean(0)

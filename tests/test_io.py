@@ -27,21 +27,21 @@ def test_openpmd_round_trip(tmp_path):
     assert set(ts.avail_fields) == {"density", "negative_cells", "particle_region"}
     rho, info = ts.get_field("density", iteration=scene.n_steps)
     assert np.array_equal(rho, res.final_density[0])
-    assert np.allclose(info.dx, scene.dx[0]) and np.allclose(info.dy, scene.dx[1])
+    assert np.allclose(info.dx, scene.grid.dx[0]) and np.allclose(info.dy, scene.grid.dx[1])
     region, _ = ts.get_field("particle_region", iteration=scene.n_steps)
     x, y, pid = ts.get_particle(["x", "y", "id"], species="particles", iteration=scene.n_steps)
     # every particle sits in a covered cell, and the covered cells hold exactly the particles
-    i, j = (x // scene.dx[0]).astype(int), (y // scene.dx[1]).astype(int)
+    i, j = (x // scene.grid.dx[0]).astype(int), (y // scene.grid.dx[1]).astype(int)
     assert np.all(region[i, j] == 1)
-    counts = np.zeros(scene.cells)
+    counts = np.zeros(scene.grid.cells)
     np.add.at(counts, (i, j), 1)
-    assert np.allclose(counts[region == 1], rho[region == 1] * scene.cell_volume)
+    assert np.allclose(counts[region == 1], rho[region == 1] * scene.grid.cell_volume)
     assert len(np.unique(pid)) == len(pid) > 0
     with h5py.File(tmp_path / "ellipse2d_hybrid_openpmd" / f"data{scene.n_steps:06d}.h5") as f:
         boxes = f["ti_dk/boxes"][:]  # outside the openPMD base path
         assert f.attrs["openPMD"] == b"1.1.0"
         assert f.attrs["softwareVersion"].decode() == ti_dk.__version__
-    covered = np.zeros(scene.cells, dtype=int)
+    covered = np.zeros(scene.grid.cells, dtype=int)
     for lo0, lo1, hi0, hi1 in boxes:
         covered[lo0:hi0, lo1:hi1] += 1
     assert np.array_equal(covered, region)

@@ -17,7 +17,7 @@ def test_each_builder_makes_an_initialised_solver(method):
     scene = load_scene("void1d", method=method, ensemble=2, cells=[20])
     s = make_solver(scene, scene.initial_ppc)
     assert isinstance(s, Solver)
-    counts = s.density() * scene.cell_volume
+    counts = s.density() * scene.grid.cell_volume
     assert counts.shape == (2, 20)
     if method == "particle":  # sampled: whole particles around the initial profile
         assert np.array_equal(counts, np.round(counts)) and counts.sum() > 0

@@ -18,12 +18,12 @@ def test_equilibrium_counts_are_binomial():
     N, M = 5 * 100, 100
     b = theory.binomial_moments(N, 1 / M)
     pmf = theory.poisson_binomial_pmf(np.array([1 / M]), np.array([N]))
-    se = theory.sampling_se(pmf, scene.ensemble)
+    se = theory.sampling_se(pmf, scene.method.ensemble)
     exact = {k: np.full(M, b[k]) for k in KEYS}
     ses = {k: np.full(M, se[k]) for k in KEYS}
     for row in range(2):
         check_moments(as_counts(res.stats, row, res.cell_volume), exact, ses, slice(None))
-    assert res.diagnostics["mass"][-1] == N * scene.ensemble
+    assert res.diagnostics["mass"][-1] == N * scene.method.ensemble
 
 
 @pytest.mark.slow  # statistical: thousands of members against the exact counts
@@ -38,7 +38,7 @@ def test_void_counts_are_poisson_binomial():
         # low-density cells (the interesting ones) with at least 0.5 particles on average
         cells = np.array([(np.arange(len(p)) * p).sum() for p in pmfs]) > 0.5
         assert cells.sum() > 50
-        exact, se = theory.void_reference(ppc0, 1.0, scene.dt, steps, scene.ensemble, cells)
+        exact, se = theory.void_reference(ppc0, 1.0, scene.dt, steps, scene.method.ensemble, cells)
         # the PMF route and the cumulant route to the exact moments agree
         assert np.allclose([(np.arange(len(p)) * p).sum() for p in pmfs], exact["mean"])
         assert (exact["mean"][cells] < 5).any()
@@ -59,7 +59,7 @@ def test_walls_and_reservoirs(boundary):
                        ppc=2, C=0.25, ensemble=200)
     grid = Grid.from_scene(scene)
     ppc = np.full(20, 2.5)
-    s = ParticleSolver(grid, scene.dt, scene.ensemble, 4, ti.f64, ParticleSolver.capacity_for(grid, ppc))
+    s = ParticleSolver(grid, scene.dt, scene.method.ensemble, 4, ti.f64, ParticleSolver.capacity_for(grid, ppc))
     s.initialize(ppc)
     mass = [s.diagnostics()["mass"]]
     inflow, clamped = [], 0
@@ -78,7 +78,7 @@ def test_walls_and_reservoirs(boundary):
         assert not any(inflow)
     else:
         # 400 steps of dt = 0.25/400 is t = 0.25: the profile has filled towards the reservoir's 6
-        assert 4.5 < mass[-1] / (20 * scene.ensemble) < 6.5
+        assert 4.5 < mass[-1] / (20 * scene.method.ensemble) < 6.5
 
 
 _BITS = """

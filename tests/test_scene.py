@@ -217,7 +217,7 @@ def test_help_shows_real_defaults_once():
     assert "default: None" not in r.stdout and "(default: renders)" in r.stdout
     for line in r.stdout.splitlines():
         assert line.count("default") <= 1, line
-    assert "C                time step dt = C min(dx)^2 (a number > 0; default 0.0625)" in r.stdout
+    assert "[time]\n  C                 time step dt = C min(dx)^2 (a number > 0; default 0.0625)" in r.stdout
     assert "buffer" in r.stdout and "ppc_outer" in r.stdout
 
 

@@ -19,7 +19,7 @@ def test_result_and_file(tmp_path):
     assert res.diagnostics["mass"].shape == (scene.n_steps,)
     with h5py.File(res.path) as f:
         assert f.attrs["complete"]
-        assert json.loads(f.attrs["scene"])["ensemble"] == 50
+        assert json.loads(f.attrs["scene"])["method"]["ensemble"] == 50
         assert f.attrs["wall_time"] > 0
         assert np.array_equal(f["stats/mean"][:], res.stats.mean)
         assert f["stats/time"].shape == (3,)
@@ -83,7 +83,7 @@ def _steps(scene, steps, check=None):
     from ti_dk.methods import make_solver
 
     s = make_solver(scene, scene.initial_ppc)
-    mass = [s.diagnostics()["mass"] if scene.method != "particle" else None]
+    mass = [s.diagnostics()["mass"] if scene.method.name != "particle" else None]
     for n in range(steps):
         s.step(n)
         d = s.diagnostics()

@@ -37,7 +37,7 @@ def test_read_back_equals_the_result_and_is_reused(tmp_path, monkeypatch):
 def test_overrides_win_and_one_member_files_hold_only_the_mean(tmp_path):
     runs = Runs(tmp_path, overrides=parse_sets(["cells=[10]", "t_end=0.002"]))
     got = runs.get("b", "void1d", method="fv", ensemble=1, cells=[50])
-    assert got.scene.cells == (10,) and got.stats.mean.shape[1:] == (10,)
+    assert got.scene.grid.cells == (10,) and got.stats.mean.shape[1:] == (10,)
     assert np.isnan(got.stats.variance).all()  # undefined for one member, and read as such
     assert np.array_equal(got.stats.mean[-1], read_run(got.path, got.scene).stats.mean[-1])
     with pytest.raises(ti_dk.ConfigError, match="write KEY=VALUE"):

@@ -102,7 +102,7 @@ def checkpoint_problem(scene: Scene, prog: Progress, states: dict, solvers: dict
     if any(len(v) != step for v in prog.diag.values()) or not math.isclose(prog.diag["time"][-1], step * scene.dt,
                                                                            rel_tol=1e-9):
         return f"its per-step diagnostics do not end at step {step}"
-    rows = 0 if scene.t_equil is not None else sum(1 for s in scene.output_steps if s <= step)
+    rows = 0 if scene.stats.t_equil is not None else sum(1 for s in scene.output_steps if s <= step)
     if len(prog.rows) != rows or len(prog.times) != rows:
         return f"it holds {len(prog.rows)} statistics rows where step {step} has {rows}"
     for name, solver in solvers.items():
@@ -127,16 +127,16 @@ def checkpoint_problem(scene: Scene, prog: Progress, states: dict, solvers: dict
 
 def state_problem(scene: Scene, name: str, st: dict, solver: Solver, diag: dict) -> str | None:
     """Particles inside the domain (and the hybrid's region), and the mass against the diagnostics."""
-    vol, lengths = scene.cell_volume, np.array(scene.lengths)
+    vol, lengths = scene.grid.cell_volume, np.array(scene.grid.lengths)
     counts = st.get("n_alive", st.get("n_real"))
     if counts is not None:
         x = st["x"]
-        if counts.shape != (scene.ensemble,) or counts.min() < 0 or counts.max() > x.shape[-2]:
+        if counts.shape != (scene.method.ensemble,) or counts.min() < 0 or counts.max() > x.shape[-2]:
             return f"{name}: particle counts {counts.tolist()[:4]} do not fit its {x.shape[-2]} slots"
         live = np.arange(x.shape[-2])[None, :] < counts[:, None]
         pos = x[live]
         if pos.size and ((pos < 0).any() or (pos >= lengths).any()):
-            return f"{name}: particles lie outside the domain [0, {list(scene.lengths)})"
+            return f"{name}: particles lie outside the domain [0, {list(scene.grid.lengths)})"
     prefix = "" if name == "solver" else "compare_"
     if "n_alive" in st:
         mass = float(counts.sum())
@@ -144,7 +144,7 @@ def state_problem(scene: Scene, name: str, st: dict, solver: Solver, diag: dict)
         q = st["spde_q" if "spde_q" in st else "q"]
         mass = float(q.astype(np.float64).sum() * vol)
     if "n_real" in st:  # hybrid: covered cells hold exactly their particles, and the boxes cover the region
-        cells = np.minimum((pos / np.array(scene.dx)).astype(np.int64), np.array(scene.cells) - 1)
+        cells = np.minimum((pos / np.array(scene.grid.dx)).astype(np.int64), np.array(scene.grid.cells) - 1)
         member = np.nonzero(live)[0]
         covered = st["covered"].astype(bool)
         if pos.size and not covered[(member, *cells.T)].all():
@@ -155,12 +155,12 @@ def state_problem(scene: Scene, name: str, st: dict, solver: Solver, diag: dict)
             return f"{name}: the densities of the particle region differ from its particle counts"
         region = np.zeros_like(covered)
         for e, *b in st["boxes"]:
-            d = scene.dim
+            d = scene.grid.dim
             region[(e, *(slice(lo, hi) for lo, hi in zip(b[:d], b[d:])))] = True
         if not np.array_equal(region, covered):
             return f"{name}: the particle region differs from its boxes"
     want = float(diag[prefix + "mass"][-1])
-    tol = 1e-5 if scene.precision == "f32" else 1e-9
+    tol = 1e-5 if scene.method.precision == "f32" else 1e-9
     if not math.isclose(mass, want, rel_tol=tol, abs_tol=tol):
         return f"{name}: its state holds {mass:.10g} particles where the diagnostics say {want:.10g}"
     return None

@@ -1,11 +1,14 @@
 """Scene parameters: frozen dataclasses, TOML loading, and the one place input is validated.
 
-A scene file groups its keys in optional tables (``[grid]``, ``[init]``, ``[stats]``) for the
-reader; the loaded :class:`Scene` is flat, so every key can be overridden by its bare name
-(``load_scene("void1d", ppc=5, C=0.05)`` or ``--set ppc=5``). Densities in scene files are in
-particles per cell; inside the solvers they are number densities (particles per unit volume).
+A scene file groups its keys in tables (``[grid]``, ``[init]``, ``[time]``, ``[method]``,
+``[hybrid]``, ``[stats]``, ``[output]``); the loaded :class:`Scene` holds one frozen section per
+table (``scene.grid.cells``, ``scene.method.name``, ``scene.hybrid.threshold``). Every key name is
+unique across tables, so every key can also be given flat: at the top of a file, or overridden by
+its bare name (``load_scene("void1d", ppc=5, C=0.05)`` or ``--set ppc=5``). Densities in scene
+files are in particles per cell; inside the solvers they are number densities (particles per unit
+volume).
 
-Every key is declared once, as a :class:`Scene` field carrying a :class:`Key` (kind, limits or
+Every key is declared once, as a section field carrying a :class:`Key` (kind, limits or
 choices, a one-line doc); validation, ``--set`` parsing and ``--help`` all read that declaration.
 The run options that are not scene keys (``--out``, Dask sizes, checkpoints) are checked by
 :func:`check_options`, and what a scene needs (memory, steps, time) by :func:`memory_estimate`
@@ -123,22 +126,16 @@ class Key:
         return value
 
 
-def key(kind: str, doc: str, default: Any = dataclasses.MISSING, **limits) -> Any:
-    """A :class:`Scene` field declared with its :class:`Key`."""
-    return dataclasses.field(default=default, metadata={"key": Key(kind, doc, **limits)})
+def key(kind: str, doc: str, default: Any = dataclasses.MISSING, flat: str | None = None, **limits) -> Any:
+    """A scene section's field declared with its :class:`Key`; ``flat``: its name in flat form
+    (``--set``, top-level TOML) when that differs from the field's."""
+    return dataclasses.field(default=default, metadata={"key": Key(kind, doc, **limits), "flat": flat})
 
 
 @dataclass(frozen=True)
-class Scene:
-    """A validated, immutable description of one run.
+class GridKeys:
+    """``[grid]``: the uniform Cartesian grid on ``[0, L_0] × … × [0, L_{d-1}]`` (paper §2.2.1)."""
 
-    Time step: ``dt = C · min(Δx_a)²``. Output rows are taken at the steps nearest to
-    ``output_times``; with ``t_equil`` set, the run is treated as stationary and every
-    ``sample_every``-th step after ``t_equil`` is pooled into one statistics row at ``t_end``.
-    """
-
-    name: str = key("text", "the run's name; files are OUT/<name>_<method>.* (default: the scene file's name)",
-                    form="a plain file name: letters, digits, '.', '_', '-'")
     cells: tuple[int, ...] = key("special", "cells per axis; the number of entries is the dimension",
                                  form="1 to 3 whole numbers >= 2, e.g. [64, 64]")
     lengths: tuple[float, ...] = key("special", "domain length per axis (default 1 each)",
@@ -149,113 +146,194 @@ class Scene:
     reservoir_ppc: tuple[tuple[float, float], ...] = key(
         "special", "dirichlet sides: reservoir density in particles per cell (default 0)",
         form=f"a number in [0, {MAX_PPC:g}]; per axis, or [lo, hi] per axis")
-    init: str = key("special", "the initial condition ([init] name = ...)",
+
+    @property
+    def dim(self) -> int:
+        return len(self.cells)
+
+    @property
+    def dx(self) -> tuple[float, ...]:
+        return tuple(L / n for L, n in zip(self.lengths, self.cells))
+
+    @property
+    def cell_volume(self) -> float:
+        return math.prod(self.dx)
+
+
+@dataclass(frozen=True)
+class InitKeys:
+    """``[init]``: the initial condition (a function of :mod:`ti_dk.initial`) and its own keys."""
+
+    name: str = key("special", "the initial condition ([init] name = ...)", flat="init",
                     form="one of " + ", ".join(initial.REGISTRY))
-    init_params: tuple[tuple[str, Any], ...] = ()  # the initial condition's own keys (INIT_KEYS)
-    method: str = key("choice", "what advances the density", "fv", choices=METHODS)
+    items: tuple[tuple[str, Any], ...] = ()  # its parameters (INIT_KEYS), sorted by name
+
+    @property
+    def params(self) -> dict[str, Any]:
+        return dict(self.items)
+
+
+@dataclass(frozen=True)
+class TimeKeys:
+    """``[time]``: explicit steps ``Δt = C · min(Δx_a)²`` up to ``t_end``."""
+
     C: float = key("real", "time step dt = C min(dx)^2", 0.0625, lo=0.0, above=True)
     t_end: float = key("real", "end time", 0.01, lo=0.0, above=True)
-    output_times: tuple[float, ...] = key("special", "times of the statistics rows and frames (t_end is always one)",
-                                          (), form="a list of numbers in [0, t_end]")
+    allow_unstable: bool = key("bool", "accept C beyond the explicit stability limit (experiments)", False)
+
+
+@dataclass(frozen=True)
+class MethodKeys:
+    """``[method]``: what advances the density, for how many members, from which seed."""
+
+    name: str = key("choice", "what advances the density ([method] name = ...)", "fv", flat="method", choices=METHODS)
     ensemble: int = key("int", "independent members", 1, lo=1, hi=MAX_MEMBERS)
     seed: int = key("int", "random seed: the same seed gives the same bits on any thread count", 0,
                     lo=0, hi=2**64 - 1)
     precision: str = key("choice", "floating-point precision of the solvers", "f64", choices=PRECISIONS)
-    threshold: float = key("real", "hybrid: particles where the SPDE holds fewer particles per cell than this",
-                           _RG.threshold, lo=0.0, above=True)
-    t_equil: float | None = key("special", "stationary runs: pool samples after this time (default: not stationary)",
-                                None, form="a number in [0, t_end)")
-    sample_every: int = key("int", "stationary runs: pool every k-th step", 1, lo=1)
-    histogram: tuple[int, int] | None = key("special", "per-cell histogram of particles per cell, one-particle bins",
-                                            None, form="[lo, hi], whole numbers with lo < hi")
     particle_init: str = key("choice", "particle method: ppc per cell, or exactly ppc x cells uniform particles",
                              "per_cell", choices=PARTICLE_INITS)
-    spde: str = key("choice", "hybrid: the SPDE kept on the whole grid", "fv", choices=SPDES)
-    ghost_profile: str = key("choice", "hybrid: how sampled particles lie in their cell (mean: slope of q-bar)",
-                             "mean", choices=GHOST_PROFILES)
-    particle_substeps: int = key("int", "hybrid: particle steps of dt/k per SPDE step (paper, end of 3.1)", 1,
-                                 lo=1, hi=64)
     compare: str | None = key("special", "a second method run on the same start and drawn beside (default none)",
                               None, form="one of " + ", ".join(METHODS) + ", none")
-    movie_frames: int = key("int", "--movie: frames evenly spaced in time", 48, lo=1, hi=10_000)
-    regrid_interval: int = key("int", "hybrid: steps between regrids (0: the region is fixed)", 10, lo=0)
-    buffer: int = key("int", "hybrid: grow tagged cells by this many cells", _RG.buffer, lo=0)
-    grid_efficiency: float = key("real", "hybrid: smallest tagged fraction of a box", _RG.efficiency,
+
+
+@dataclass(frozen=True)
+class HybridKeys:
+    """``[hybrid]``: the SPDE kept everywhere, the particle region and how it meets the SPDE (§3)."""
+
+    spde: str = key("choice", "the SPDE kept on the whole grid", "fv", choices=SPDES)
+    threshold: float = key("real", "particles where the SPDE holds fewer particles per cell than this",
+                           _RG.threshold, lo=0.0, above=True)
+    ghost_profile: str = key("choice", "how sampled particles lie in their cell (mean: slope of q-bar)",
+                             "mean", choices=GHOST_PROFILES)
+    particle_substeps: int = key("int", "particle steps of dt/k per SPDE step (paper, end of 3.1)", 1,
+                                 lo=1, hi=64)
+    regrid_interval: int = key("int", "steps between regrids (0: the region is fixed)", 10, lo=0)
+    buffer: int = key("int", "grow tagged cells by this many cells", _RG.buffer, lo=0)
+    grid_efficiency: float = key("real", "smallest tagged fraction of a box", _RG.efficiency,
                                  lo=0.0, hi=1.0, above=True)
-    min_box: int = key("int", "hybrid: smallest box side in cells", _RG.min_box, lo=1)
-    max_box: int = key("int", "hybrid: largest box side in cells", _RG.max_box, lo=1)
-    regrid_floor: float = key("real", "hybrid: cover uncovered cells below this times threshold before any step "
+    min_box: int = key("int", "smallest box side in cells", _RG.min_box, lo=1)
+    max_box: int = key("int", "largest box side in cells", _RG.max_box, lo=1)
+    regrid_floor: float = key("real", "cover uncovered cells below this times threshold before any step "
                               "(0: scheduled regrids only)", _RG.floor, lo=0.0, hi=1.0)
-    allow_unstable: bool = key("bool", "accept C beyond the explicit stability limit (experiments)", False)
-    description: str = key("text", "a line saying what the scene is", "")
-
-    # -- derived geometry and time stepping ---------------------------------------------
-    @property
-    def grid(self) -> Grid:
-        return Grid.from_scene(self)
-
-    @property
-    def dim(self) -> int:
-        return self.grid.dim
-
-    @property
-    def dx(self) -> tuple[float, ...]:
-        return self.grid.dx
-
-    @property
-    def cell_volume(self) -> float:
-        return self.grid.cell_volume
-
-    @property
-    def dt(self) -> float:
-        return self.C * min(self.dx) ** 2
-
-    @property
-    def n_steps(self) -> int:
-        return max(1, round(self.t_end / self.dt))
-
-    @property
-    def output_steps(self) -> tuple[int, ...]:
-        if self.t_equil is not None:
-            return (self.n_steps,)
-        return tuple(sorted({min(self.n_steps, round(t / self.dt)) for t in self.output_times}))
-
-    @property
-    def stability_number(self) -> float:
-        """``Σ_a Δt/Δx_a²``: the explicit FV scheme is stable for values below 1."""
-        return sum(self.dt / h**2 for h in self.dx)
-
-    @property
-    def clamp_probability(self) -> float:
-        """Probability that one particle step (Δt / particle_substeps in the hybrid) along the finest axis
-        exceeds Δx (and is clamped)."""
-        substeps = self.particle_substeps if self.method == "hybrid" else 1
-        return math.erfc(min(self.dx) / math.sqrt(2 * self.dt / substeps))
 
     @property
     def regrid(self) -> RegridParams:
         return RegridParams(threshold=self.threshold, buffer=self.buffer, efficiency=self.grid_efficiency,
                             min_box=self.min_box, max_box=self.max_box, floor=self.regrid_floor)
 
+
+@dataclass(frozen=True)
+class StatsKeys:
+    """``[stats]``: when the ensemble's statistics are taken (rows at ``output_times``, or one
+    pooled row for a stationary run, ``t_equil`` set)."""
+
+    output_times: tuple[float, ...] = key("special", "times of the statistics rows and frames (t_end is always one)",
+                                          (), form="a list of numbers in [0, t_end]")
+    t_equil: float | None = key("special", "stationary runs: pool samples after this time (default: not stationary)",
+                                None, form="a number in [0, t_end)")
+    sample_every: int = key("int", "stationary runs: pool every k-th step", 1, lo=1)
+    histogram: tuple[int, int] | None = key("special", "per-cell histogram of particles per cell, one-particle bins",
+                                            None, form="[lo, hi], whole numbers with lo < hi")
+
+
+@dataclass(frozen=True)
+class OutputKeys:
+    """``[output]``: what the run draws beyond its statistics."""
+
+    movie_frames: int = key("int", "--movie: frames evenly spaced in time", 48, lo=1, hi=10_000)
+
+
+SECTIONS = {"grid": GridKeys, "init": InitKeys, "time": TimeKeys, "method": MethodKeys, "hybrid": HybridKeys,
+            "stats": StatsKeys, "output": OutputKeys}  # the scene file's tables, in their order
+
+
+@dataclass(frozen=True)
+class Scene:
+    """A validated, immutable description of one run: a name and one section per scene-file table.
+
+    Output rows are taken at the steps nearest to ``stats.output_times``; with ``stats.t_equil``
+    set, the run is stationary and every ``sample_every``-th step after ``t_equil`` is pooled into
+    one statistics row at ``t_end``.
+    """
+
+    grid: GridKeys
+    init: InitKeys
+    time: TimeKeys = TimeKeys()
+    method: MethodKeys = MethodKeys()
+    hybrid: HybridKeys = HybridKeys()
+    stats: StatsKeys = StatsKeys()
+    output: OutputKeys = OutputKeys()
+    name: str = key("text", "the run's name; files are OUT/<name>_<method>.* (default: the scene file's name)",
+                    "", form="a plain file name: letters, digits, '.', '_', '-'")
+    description: str = key("text", "a line saying what the scene is", "")
+
+    # -- derived time stepping ----------------------------------------------------------
+    @property
+    def dt(self) -> float:
+        return self.time.C * min(self.grid.dx) ** 2
+
+    @property
+    def n_steps(self) -> int:
+        return max(1, round(self.time.t_end / self.dt))
+
+    @property
+    def output_steps(self) -> tuple[int, ...]:
+        if self.stats.t_equil is not None:
+            return (self.n_steps,)
+        return tuple(sorted({min(self.n_steps, round(t / self.dt)) for t in self.stats.output_times}))
+
+    @property
+    def stability_number(self) -> float:
+        """``Σ_a Δt/Δx_a²``: the explicit FV scheme is stable for values below 1."""
+        return sum(self.dt / h**2 for h in self.grid.dx)
+
+    @property
+    def clamp_probability(self) -> float:
+        """Probability that one particle step (Δt / particle_substeps in the hybrid) along the finest axis
+        exceeds Δx (and is clamped)."""
+        substeps = self.hybrid.particle_substeps if self.method.name == "hybrid" else 1
+        return math.erfc(min(self.grid.dx) / math.sqrt(2 * self.dt / substeps))
+
     @property
     def initial_ppc(self) -> np.ndarray:
         """The initial condition on the cell centres, in particles per cell."""
-        return initial.density_ppc(self.init, self.params, self.cells, self.lengths)
-
-    @property
-    def params(self) -> dict[str, Any]:
-        return dict(self.init_params)
+        return initial.density_ppc(self.init.name, self.init.params, self.grid.cells, self.grid.lengths)
 
     def to_dict(self) -> dict[str, Any]:
+        """The scene as nested tables, as a scene file writes it."""
         d = dataclasses.asdict(self)
-        d["init_params"] = dict(self.init_params)
+        d["init"] = {"name": self.init.name, **self.init.params}
         return d
 
+    def flat(self) -> dict[str, Any]:
+        """Every key by its flat name (the form ``--set`` and :func:`load_scene` overrides take)."""
+        out = {"name": self.name, "description": self.description, **self.init.params}
+        for sec, field_ in _WHERE.values():
+            if sec is not None:
+                out[_flat_name(field_)] = getattr(getattr(self, sec), field_.name)
+        return out
+
+    def replace(self, **flat: Any) -> "Scene":
+        """This scene with some keys changed by flat name (no new validation: for values already valid)."""
+        top = {k: flat.pop(k) for k in ("name", "description") if k in flat}
+        parts = {}
+        for k, v in flat.items():
+            sec, field_ = _WHERE[k]
+            parts.setdefault(sec, {})[field_.name] = v
+        return dataclasses.replace(self, **top, **{s: dataclasses.replace(getattr(self, s), **kw)
+                                                   for s, kw in parts.items()})
+
 
 # ---------------------------------------------------------------------------------------
-# the keys: scene fields, and the initial conditions' own parameters
+# the keys: section fields by flat name, and the initial conditions' own parameters
 # ---------------------------------------------------------------------------------------
-_FIELDS = {f.name: f for f in dataclasses.fields(Scene)}
+def _flat_name(field_: dataclasses.Field) -> str:
+    return field_.metadata.get("flat") or field_.name
+
+
+_WHERE = {f.name: (None, f) for f in dataclasses.fields(Scene) if "key" in f.metadata} | {
+    _flat_name(f): (sec, f) for sec, cls in SECTIONS.items() for f in dataclasses.fields(cls) if "key" in f.metadata}
 _PPC = dict(lo=0.0, hi=MAX_PPC)
 INIT_KEYS = {  # the initial conditions' parameters (their defaults are in initial.py)
     "ppc": Key("real", "particles per cell (void: outside the void)", **_PPC),
@@ -270,13 +348,13 @@ INIT_KEYS = {  # the initial conditions' parameters (their defaults are in initi
     "inner_z": Key("real", "spheres: offset of the inner sphere along z"),
 }
 INIT_AXES = {"ellipses": 2, "spheres": 3}  # initial conditions drawn for one dimension only
-KEYS = {k: f.metadata["key"] for k, f in _FIELDS.items() if "key" in f.metadata} | INIT_KEYS
+KEYS = {k: f.metadata["key"] for k, (_, f) in _WHERE.items()} | INIT_KEYS  # every key by flat name
 
 
 def _default(name: str) -> Any:
     """A key's default as --help shows it (None: none, or it depends on the scene)."""
-    if name in _FIELDS:
-        d = _FIELDS[name].default
+    if name in _WHERE:
+        d = _WHERE[name][1].default
         return None if d is dataclasses.MISSING else d
     for f in initial.REGISTRY.values():
         p = inspect.signature(f).parameters.get(name)
@@ -286,21 +364,20 @@ def _default(name: str) -> Any:
 
 
 def keys_help() -> str:
-    """One line per scene key: name, what it takes, default, doc (for ``--help``)."""
-    lines = []
+    """Every scene key, table by table: name, doc, what it takes, default (``--help`` and the README)."""
+    tables: dict[str, list[str]] = {}
     for name, k in KEYS.items():
+        sec = _WHERE[name][0] if name in _WHERE else "init"
         d = _default(name)
         shown = "" if d in (None, (), "") else f"; default {str(d).lower() if isinstance(d, bool) else d}"
-        lines.append(f"  {name:<16} {k.doc} ({k.describe()}{shown})")
-    return "\n".join(lines)
+        tables.setdefault(f"[{sec}]" if sec else "top level", []).append(
+            f"  {name:<17} {k.doc} ({k.describe()}{shown})")
+    return "\n".join(f"{t}\n" + "\n".join(lines) for t, lines in tables.items())
 
 
 # ---------------------------------------------------------------------------------------
 # loading
 # ---------------------------------------------------------------------------------------
-_SECTIONS = ("grid", "init", "stats")
-
-
 def available_scenes() -> list[str]:
     return sorted(p.stem for p in SCENE_DIR.glob("*.toml"))
 
@@ -327,13 +404,20 @@ def _read_toml(name_or_path: str | Path) -> tuple[str, dict[str, Any]]:
 
 
 def _flatten(raw: dict[str, Any]) -> dict[str, Any]:
+    """A scene file's tables as flat keys (``[method] name`` is ``method``, ``[init] name`` is ``init``);
+    a key may also stand at the top level."""
     flat: dict[str, Any] = {}
-    for key_, value in raw.items():
-        if key_ in _SECTIONS and isinstance(value, dict):
-            for sub, v in value.items():
-                flat["init" if (key_, sub) == ("init", "name") else sub] = v
-        else:
-            flat[key_] = value
+    for table, value in raw.items():
+        if table not in SECTIONS or not isinstance(value, dict):
+            flat[table] = value
+            continue
+        for sub, v in value.items():
+            name = table if sub == "name" and table in ("init", "method") else sub
+            home = _WHERE[name][0] if name in _WHERE else ("init" if name in INIT_KEYS else table)
+            if home != table:
+                raise ConfigError(f"[{table}] {sub}: this key belongs "
+                                  + (f"in [{home}]" if home else "at the top of the file, before any table"))
+            flat[name] = v
     return flat
 
 
@@ -353,8 +437,34 @@ def load_scene(name_or_path: str | Path, **overrides: Any) -> Scene:
 
 
 def make_scene(flat: dict[str, Any]) -> Scene:
-    """Validate a flat dict of scene keys (scene fields plus the initial condition's parameters)."""
+    """Validate a flat dict of scene keys (section keys by flat name plus the initial condition's
+    parameters) into a :class:`Scene`."""
     flat = {k: _plain(v) for k, v in flat.items()}
+    init = _init_keys(flat)
+    grid = _grid_keys(flat, init.name)
+    kw: dict[str, dict[str, Any]] = {sec: {} for sec in (None, *SECTIONS) if sec not in ("grid", "init")}
+    for name, (sec, field_) in _WHERE.items():
+        k = field_.metadata["key"]
+        if name in flat and k.kind != "special" and sec not in ("grid", "init"):
+            kw[sec][field_.name] = k.check(name, flat[name])
+    kw[None]["name"] = _file_name(kw[None].get("name", init.name))
+    method = kw["method"].get("name", MethodKeys.name)
+    if flat.get("compare") not in (None, "none"):
+        if flat["compare"] not in METHODS:
+            raise ConfigError(f"compare = {flat['compare']!r}: use one of {', '.join(METHODS)}, or none")
+        if flat["compare"] != method:  # comparing with itself: nothing
+            kw["method"]["compare"] = flat["compare"]
+    kw["stats"].update(_stats_keys(flat, kw["time"].get("t_end", TimeKeys.t_end)))
+    scene = Scene(grid=grid, init=init, **kw.pop(None), **{s: SECTIONS[s](**v) for s, v in kw.items() if s})
+    _check_choices(scene)
+    _check_sizes(scene)
+    _check_time_step(scene)
+    check_memory(scene)
+    return scene
+
+
+def _init_keys(flat: dict[str, Any]) -> InitKeys:
+    """Take the initial condition and its parameters out of ``flat``; refuse keys nobody takes."""
     if "init" not in flat:
         raise ConfigError("the scene names no initial condition: add [init] name = ...")
     ic_name = flat.pop("init")
@@ -370,14 +480,17 @@ def make_scene(flat: dict[str, Any]) -> Scene:
             params[k] = p.default
     for k, v in params.items():
         params[k] = INIT_KEYS.get(k, Key("real", "")).check(k, v)
-    unknown = [k for k in flat if k not in _FIELDS or k == "init_params"]
+    unknown = [k for k in flat if k not in _WHERE]
     if unknown:
         if unknown[0] in INIT_KEYS:
             raise ConfigError(f"'{unknown[0]}' is not a parameter of initial condition '{ic_name}': "
                               f"its parameters are {', '.join(ic_keys)}")
-        valid = sorted(set(_FIELDS) - {"init_params", "name"} | set(ic_keys))
+        valid = sorted(set(_WHERE) - {"name", "init"} | set(ic_keys))
         raise ConfigError(f"unknown key '{unknown[0]}': valid keys are {', '.join(valid)}")
+    return InitKeys(ic_name, tuple(sorted(params.items())))
 
+
+def _grid_keys(flat: dict[str, Any], ic_name: str) -> GridKeys:
     cells = _int_tuple("cells", flat.get("cells"))
     dim = len(cells)
     if not 1 <= dim <= 3:
@@ -401,19 +514,12 @@ def make_scene(flat: dict[str, Any]) -> Scene:
     reservoir = _per_side("reservoir_ppc", flat.get("reservoir_ppc", 0.0), dim, float)
     for r in (r for sides in reservoir for r in sides):
         Key("real", "", **_PPC).check("reservoir_ppc", r)
+    return GridKeys(cells, lengths, boundary, reservoir)
 
-    kw: dict[str, Any] = dict(cells=cells, lengths=lengths, boundary=boundary, reservoir_ppc=reservoir, init=ic_name,
-                              init_params=tuple(sorted(params.items())))
-    for name, k in KEYS.items():
-        if name in flat and name in _FIELDS and k.kind != "special":
-            kw[name] = k.check(name, flat[name])
-    kw["name"] = _file_name(kw.get("name", ic_name))
-    if flat.get("compare") not in (None, "none"):
-        if flat["compare"] not in METHODS:
-            raise ConfigError(f"compare = {flat['compare']!r}: use one of {', '.join(METHODS)}, or none")
-        if flat["compare"] != kw.get("method", _FIELDS["method"].default):  # comparing with itself: nothing
-            kw["compare"] = flat["compare"]
-    t_end = kw.get("t_end", _FIELDS["t_end"].default)
+
+def _stats_keys(flat: dict[str, Any], t_end: float) -> dict[str, Any]:
+    """The special keys of ``[stats]``: output times (``t_end`` always one), ``t_equil``, histogram."""
+    kw: dict[str, Any] = {}
     if flat.get("t_equil") is not None:
         kw["t_equil"] = _number("t_equil", flat["t_equil"], positive=False)
         if not 0 <= kw["t_equil"] < t_end:
@@ -429,19 +535,21 @@ def make_scene(flat: dict[str, Any]) -> Scene:
         if len(h) != 2 or h[0] >= h[1]:
             raise ConfigError("histogram: give [lo, hi] in particles per cell with lo < hi")
         kw["histogram"] = h
-    scene = Scene(**kw)
-    if scene.particle_init == "exact_uniform" and (scene.init != "uniform" or scene.method != "particle"):
+    return kw
+
+
+def _check_choices(scene: Scene) -> None:
+    """Keys that are valid alone but not together."""
+    m, h = scene.method, scene.hybrid
+    if m.particle_init == "exact_uniform" and (scene.init.name != "uniform" or m.name != "particle"):
         raise ConfigError("particle_init = 'exact_uniform' needs init 'uniform' and method 'particle'")
-    if scene.max_box < 2 * scene.min_box:
-        raise ConfigError(f"max_box = {scene.max_box} < 2 min_box = {2 * scene.min_box}: "
+    if h.max_box < 2 * h.min_box:
+        raise ConfigError(f"max_box = {h.max_box} < 2 min_box = {2 * h.min_box}: "
                           "raise max_box so an oversized box can be halved")
-    if scene.method == "hybrid" and 32 - math.ceil(math.log2(math.prod(n + 2 for n in cells))) < ID_BITS_MIN:
+    cells = scene.grid.cells
+    if m.name == "hybrid" and 32 - math.ceil(math.log2(math.prod(n + 2 for n in cells))) < ID_BITS_MIN:
         raise ConfigError(f"cells = {list(cells)}: too many cells for the hybrid's 32-bit particle ids; "
                           f"use at most about {2 ** (32 - ID_BITS_MIN):.3g} cells")
-    _check_sizes(scene)
-    _check_time_step(scene)
-    check_memory(scene)
-    return scene
 
 
 def _plain(value: Any) -> Any:
@@ -461,44 +569,44 @@ def _file_name(name: Any) -> str:
 
 def _check_sizes(scene: Scene) -> None:
     """Sizes whose derived quantities would overflow, underflow or mean nothing."""
-    cells = math.prod(scene.cells)
-    if scene.ensemble * cells > MAX_FIELD:
-        raise ConfigError(f"ensemble x cells = {scene.ensemble * cells:,}: Taichi fields hold at most {MAX_FIELD:,} "
+    cells = math.prod(scene.grid.cells)
+    if scene.method.ensemble * cells > MAX_FIELD:
+        raise ConfigError(f"ensemble x cells = {scene.method.ensemble * cells:,}: Taichi fields hold at most {MAX_FIELD:,} "
                           "entries; lower the ensemble or the cells (or split it: --executor dask)")
-    vol = scene.cell_volume
+    vol = scene.grid.cell_volume
     if not (math.isfinite(vol) and vol > 0 and math.isfinite(1 / vol) and scene.dt > 0 and math.isfinite(scene.dt)
-            and all(math.isfinite(h * h) and h * h > 0 for h in scene.dx)):
-        raise ConfigError(f"lengths = {list(scene.lengths)}, C = {scene.C}: the cell size or time step under- or "
+            and all(math.isfinite(h * h) and h * h > 0 for h in scene.grid.dx)):
+        raise ConfigError(f"lengths = {list(scene.grid.lengths)}, C = {scene.time.C}: the cell size or time step under- or "
                           "overflows double precision; give lengths and C nearer 1")
-    steps = scene.t_end / scene.dt
+    steps = scene.time.t_end / scene.dt
     if steps < 0.5:
-        raise ConfigError(f"t_end = {scene.t_end:g} is shorter than one time step dt = {scene.dt:.4g}: "
+        raise ConfigError(f"t_end = {scene.time.t_end:g} is shorter than one time step dt = {scene.dt:.4g}: "
                           f"raise t_end (or C)")
     if steps > MAX_STEPS:
-        raise ConfigError(f"t_end = {scene.t_end:g} is {steps:.3g} steps of dt = {scene.dt:.4g}: at most "
+        raise ConfigError(f"t_end = {scene.time.t_end:g} is {steps:.3g} steps of dt = {scene.dt:.4g}: at most "
                           f"{MAX_STEPS:,} steps fit the random-number counter; lower t_end or raise C")
-    if scene.t_equil is not None and scene.n_steps - round(scene.t_equil / scene.dt) < 1:
-        raise ConfigError(f"t_equil = {scene.t_equil:g} leaves no step to sample before t_end: lower t_equil")
-    p = scene.params
-    if scene.init == "void" and not p["void_lo"] <= p["void_hi"]:
+    if scene.stats.t_equil is not None and scene.n_steps - round(scene.stats.t_equil / scene.dt) < 1:
+        raise ConfigError(f"t_equil = {scene.stats.t_equil:g} leaves no step to sample before t_end: lower t_equil")
+    p = scene.init.params
+    if scene.init.name == "void" and not p["void_lo"] <= p["void_hi"]:
         raise ConfigError(f"void_lo = {p['void_lo']}, void_hi = {p['void_hi']}: give void_lo <= void_hi")
 
 
 def _check_time_step(scene: Scene) -> None:
-    limit = scene.C / scene.stability_number
-    if scene.stability_number >= 1 and not scene.allow_unstable and scene.method != "particle":
+    limit = scene.time.C / scene.stability_number
+    if scene.stability_number >= 1 and not scene.time.allow_unstable and scene.method.name != "particle":
         raise ConfigError(
-            f"C = {scene.C} is beyond the explicit stability limit C < {limit:.4g} of the FV scheme on this grid: "
+            f"C = {scene.time.C} is beyond the explicit stability limit C < {limit:.4g} of the FV scheme on this grid: "
             f"lower C (e.g. --set C={limit / 2:.4g}) or set allow_unstable=true for a stability experiment"
         )
-    if scene.method == "hybrid" and scene.n_steps * scene.particle_substeps >= HYBRID_STEP_LIMIT:
+    if scene.method.name == "hybrid" and scene.n_steps * scene.hybrid.particle_substeps >= HYBRID_STEP_LIMIT:
         raise ConfigError(
-            f"t_end = {scene.t_end} is {scene.n_steps * scene.particle_substeps:,} particle steps; the hybrid numbers "
+            f"t_end = {scene.time.t_end} is {scene.n_steps * scene.hybrid.particle_substeps:,} particle steps; the hybrid numbers "
             f"particle births in 27 bits: give fewer than {HYBRID_STEP_LIMIT:,} (shorter t_end, larger C or fewer "
             "particle_substeps)")
-    if scene.method in ("particle", "hybrid") and scene.clamp_probability > CLAMP_WARN:
+    if scene.method.name in ("particle", "hybrid") and scene.clamp_probability > CLAMP_WARN:
         warnings.warn(
-            f"C = {scene.C}: a particle step is clamped to ±Δx with probability {scene.clamp_probability:.2g} "
+            f"C = {scene.time.C}: a particle step is clamped to ±Δx with probability {scene.clamp_probability:.2g} "
             f"per axis and step (> {CLAMP_WARN:g}); lower C to make clamping rare",
             ClampWarning,
             stacklevel=3,
@@ -516,15 +624,15 @@ def _particles(scene: Scene) -> float:
     """The particles per member the particle method must hold (an upper bound for huge grids)."""
     from .particles import ParticleSolver  # pure NumPy; imported here to keep config light
 
-    m = math.prod(scene.cells)
+    m = math.prod(scene.grid.cells)
     if m <= 10**7:
-        return ParticleSolver.capacity_for(scene.grid, scene.initial_ppc)
+        return ParticleSolver.capacity_for(Grid.from_scene(scene), scene.initial_ppc)
     return 1.25 * math.ceil(_ppc_max(scene)) * m + 64
 
 
 def _ppc_max(scene: Scene) -> float:
     """The largest initial or reservoir density, in particles per cell."""
-    return max([v for k, v in scene.params.items() if k.startswith("ppc")] + [scene.grid.reservoir_ppc_max])
+    return max([v for k, v in scene.init.params.items() if k.startswith("ppc")] + [Grid.from_scene(scene).reservoir_ppc_max])
 
 
 def memory_estimate(scene: Scene) -> dict[str, float]:
@@ -533,24 +641,24 @@ def memory_estimate(scene: Scene) -> dict[str, float]:
     Rough (within a factor of about 2) but computed before anything is allocated; the hybrid's
     particle pool grows with its region and is counted for the threshold density everywhere.
     """
-    cells = math.prod(scene.cells)
-    mc = scene.ensemble * cells  # member-cells
-    real = 4 if scene.precision == "f32" else 8
+    cells = math.prod(scene.grid.cells)
+    mc = scene.method.ensemble * cells  # member-cells
+    real = 4 if scene.method.precision == "f32" else 8
     est = {"fields": 0.0, "particles": 0.0}
-    for method in (scene.method, scene.compare):
+    for method in (scene.method.name, scene.method.compare):
         if method in ("fv", "gaussian", "hybrid"):
-            est["fields"] += mc * (1 + scene.dim) * real
+            est["fields"] += mc * (1 + scene.grid.dim) * real
         if method == "hybrid":
             est["fields"] += mc * 32  # region, ghost ring, cell lists, counts
-            est["particles"] += 2 * 1.5 * min(scene.threshold, _ppc_max(scene)) * mc * (scene.dim * real + 8)
+            est["particles"] += 2 * 1.5 * min(scene.hybrid.threshold, _ppc_max(scene)) * mc * (scene.grid.dim * real + 8)
         if method == "particle":
             est["fields"] += mc * 4
-            est["particles"] += scene.ensemble * _particles(scene) * (scene.dim * real + 8 * scene.grid.has_dirichlet)
+            est["particles"] += scene.method.ensemble * _particles(scene) * (scene.grid.dim * real + 8 * Grid.from_scene(scene).has_dirichlet)
     est["host copies"] = 3 * mc * 8  # density read back as float64, and its statistics update
-    rows = 1 if scene.t_equil is not None else len(scene.output_times)
+    rows = 1 if scene.stats.t_equil is not None else len(scene.stats.output_times)
     est["statistics"] = (rows + 1) * cells * 12 * 8  # moments and accumulators per row
-    if scene.histogram:
-        est["histogram"] = (rows + 1) * cells * (scene.histogram[1] - scene.histogram[0] + 1) * 8
+    if scene.stats.histogram:
+        est["histogram"] = (rows + 1) * cells * (scene.stats.histogram[1] - scene.stats.histogram[0] + 1) * 8
     return est
 
 
@@ -579,13 +687,13 @@ def check_memory(scene: Scene) -> None:
 
 def work_estimate(scene: Scene) -> tuple[int, float]:
     """``(steps, seconds)``: the steps of the run and a rough wall time on 2 CPU cores."""
-    mc = scene.ensemble * math.prod(scene.cells)
+    mc = scene.method.ensemble * math.prod(scene.grid.cells)
     per_step = 0.0
-    for method in (scene.method, scene.compare):
+    for method in (scene.method.name, scene.method.compare):
         if method in ("fv", "gaussian", "hybrid"):
             per_step += mc / SPDE_RATE
         if method == "particle":
-            per_step += scene.ensemble * _particles(scene) / PARTICLE_RATE
+            per_step += scene.method.ensemble * _particles(scene) / PARTICLE_RATE
     return scene.n_steps, scene.n_steps * per_step
 
 

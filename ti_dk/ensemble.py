@@ -7,7 +7,6 @@ Finished chunks are kept in ``<out>/<scene>_<method>_chunks/`` (written atomical
 stopped after k of n chunks resumes with the rest; a chunk whose worker died is retried by Dask
 and counted once.
 """
-import dataclasses
 import math
 import os
 import sys
@@ -35,7 +34,7 @@ def chunks(ensemble: int, size: int) -> list[tuple[int, int]]:
 
 
 def run_chunk(scene: Scene, member0: int, threads: int | None = None) -> dict:
-    """Run members ``member0 … member0 + scene.ensemble − 1`` (in a worker process)."""
+    """Run members ``member0 … member0 + scene.method.ensemble − 1`` (in a worker process)."""
     try:  # tell the driver this chunk started here (a second start means a retry)
         from distributed import Queue
 
@@ -83,14 +82,14 @@ def _run_dask(scene: Scene, outputs: Outputs | None, progress, chunk, workers, t
         from distributed import Client, LocalCluster, Queue
     except ImportError:
         raise ConfigError("the dask executor needs Dask: pip install -e '.[dask]'") from None
-    if scene.dim > 1 and scene.ensemble == 1:
+    if scene.grid.dim > 1 and scene.method.ensemble == 1:
         raise ConfigError("one member cannot be split into chunks: use --executor local")
     wall0 = time.perf_counter()
     # small members: 4 chunks per worker (finer retries and resume); large ones: 1, since every
     # chunk pays its own JIT and per-step launches (RESULTS: 4x slower for 2-member chunks of 64²)
-    per_worker = 4 if math.prod(scene.cells) < 4096 else 1
-    size = chunk or max(1, math.ceil(scene.ensemble / (per_worker * workers)))
-    todo = chunks(scene.ensemble, size)
+    per_worker = 4 if math.prod(scene.grid.cells) < 4096 else 1
+    size = chunk or max(1, math.ceil(scene.method.ensemble / (per_worker * workers)))
+    todo = chunks(scene.method.ensemble, size)
     done = _load_chunks(outputs, scene) if outputs is not None else {}
     show = sys.stderr.isatty() if progress is None else progress
     cluster = None
@@ -100,11 +99,11 @@ def _run_dask(scene: Scene, outputs: Outputs | None, progress, chunk, workers, t
     attempts: dict[int, int] = {}
     try:
         queue = Queue("ti_dk-attempts", client=client)
-        futures = [client.submit(run_chunk, dataclasses.replace(scene, ensemble=n), m0, threads, pure=False,
+        futures = [client.submit(run_chunk, scene.replace(ensemble=n), m0, threads, pure=False,
                                  retries=3, key=f"ti_dk-chunk-{m0}-{time.time_ns()}")
                    for m0, n in todo if m0 not in done]
-        with tqdm(total=scene.ensemble, initial=sum(n for m0, n in todo if m0 in done), unit="member",
-                  desc=f"{scene.name}/{scene.method} on dask", disable=not show, file=sys.stderr) as bar:
+        with tqdm(total=scene.method.ensemble, initial=sum(n for m0, n in todo if m0 in done), unit="member",
+                  desc=f"{scene.name}/{scene.method.name} on dask", disable=not show, file=sys.stderr) as bar:
             for fut in _finished(futures):
                 r = fut.result()
                 if r["member0"] not in done:  # a chunk is counted once, however often it ran
@@ -140,10 +139,10 @@ def _finished(futures):
 def _merge(scene: Scene, parts: list[dict], outputs: Outputs | None, wall: float, info: dict) -> runtime.Result:
     """Merge the chunks' accumulators in member order; per-step diagnostics are summed over members
     (``min_density`` is the minimum)."""
-    hist = scene.histogram
+    hist = scene.stats.histogram
     rows = []
     for i in range(len(parts[0]["rows"])):
-        cs = CellStats(scene.cells, scene.cell_volume, hist)
+        cs = CellStats(scene.grid.cells, scene.grid.cell_volume, hist)
         for p in parts:
             cs.merge_row(p["rows"][i])
         rows.append(cs.row())
@@ -160,7 +159,7 @@ def _merge(scene: Scene, parts: list[dict], outputs: Outputs | None, wall: float
         rf.annotate("chunks", info)
         rf.close(wall)
         path = rf.path
-    return runtime.Result(scene=scene, times=times, cell_volume=scene.cell_volume,
+    return runtime.Result(scene=scene, times=times, cell_volume=scene.grid.cell_volume,
                           stats=runtime.stats_of(rows, hist), diagnostics=diag,
                           final_density=np.concatenate([p["final_density"] for p in parts]),
                           wall_time=wall, path=path, timing={"total": wall}, rows=rows, chunks=info)

@@ -25,12 +25,12 @@ class Grid:
 
     @classmethod
     def from_scene(cls, scene) -> "Grid":
-        vol = math.prod(L / n for L, n in zip(scene.lengths, scene.cells))
+        vol = math.prod(L / n for L, n in zip(scene.grid.lengths, scene.grid.cells))
         return cls(
-            cells=scene.cells,
-            lengths=scene.lengths,
-            boundary=tuple((_KIND[lo], _KIND[hi]) for lo, hi in scene.boundary),
-            reservoir=tuple((lo / vol, hi / vol) for lo, hi in scene.reservoir_ppc),
+            cells=scene.grid.cells,
+            lengths=scene.grid.lengths,
+            boundary=tuple((_KIND[lo], _KIND[hi]) for lo, hi in scene.grid.boundary),
+            reservoir=tuple((lo / vol, hi / vol) for lo, hi in scene.grid.reservoir_ppc),
         )
 
     @property

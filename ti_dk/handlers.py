@@ -71,9 +71,9 @@ class Statistics:
         self.rows, self.times = prog.rows, prog.times  # the rows at output steps so far, and their times
         self.outputs = set(scene.output_steps)  # steps whose row is kept and written
         self.extra = set(extra_steps)  # steps whose row only draws a frame
-        self.stationary = scene.t_equil is not None
-        self.n_equil = round(scene.t_equil / scene.dt) if self.stationary else 0  # first pooled step
-        self.pooled = CellStats(scene.cells, scene.cell_volume, scene.histogram)  # stationary: the pooled samples
+        self.stationary = scene.stats.t_equil is not None
+        self.n_equil = round(scene.stats.t_equil / scene.dt) if self.stationary else 0  # first pooled step
+        self.pooled = CellStats(scene.grid.cells, scene.grid.cell_volume, scene.stats.histogram)  # stationary: the pooled samples
         if prog.pooled:
             self.pooled.load_state(prog.pooled)
         self.latest: tuple[int | None, dict | None] = (None, None)  # (step, row) of the last row taken
@@ -86,7 +86,7 @@ class Statistics:
         return n in self.outputs or n in self.extra
 
     def _sampled(self, n: int) -> bool:
-        return n >= self.n_equil and (n - self.n_equil) % self.scene.sample_every == 0
+        return n >= self.n_equil and (n - self.n_equil) % self.scene.stats.sample_every == 0
 
     def write(self, n: int) -> None:
         sc = self.scene
@@ -95,7 +95,7 @@ class Statistics:
                 self.pooled.add(self.solver.density())
             row = self.pooled.row() if n == sc.n_steps else None
         else:
-            cs = CellStats(sc.cells, sc.cell_volume, sc.histogram)
+            cs = CellStats(sc.grid.cells, sc.grid.cell_volume, sc.stats.histogram)
             cs.add(self.solver.density())
             row = cs.row()
         self.latest = (n, row)
@@ -170,7 +170,7 @@ class Frames:
     def write(self, n: int) -> None:
         t = n * self.scene.dt
         self.log["time"].append(t)
-        if self.scene.dim == 1:
+        if self.scene.grid.dim == 1:
             region = self.solver.region()
             self.writer.write(t, self.statistics.row_at(n), None if region is None else region.mean(axis=0))
             self.log["negative_cells"].append(int((self.solver.density() < 0).sum()))  # all members
@@ -186,9 +186,9 @@ class Frames:
         from .render import Panel
 
         sc, boxes = self.scene, self.solver.boxes
-        panels = [Panel(sc.method, self.solver.density()[0] * sc.cell_volume, boxes[0] if boxes else None)]
+        panels = [Panel(sc.method.name, self.solver.density()[0] * sc.grid.cell_volume, boxes[0] if boxes else None)]
         if self.other:
-            panels.append(Panel(sc.compare, self.other.density()[0] * sc.cell_volume))
+            panels.append(Panel(sc.method.compare, self.other.density()[0] * sc.grid.cell_volume))
         return panels
 
     def files(self) -> list[Path]:

@@ -75,7 +75,7 @@ class Outputs:
 
     @classmethod
     def of(cls, out: str | Path, scene) -> "Outputs":
-        o = cls(Path(out), f"{scene.name}_{scene.method}")
+        o = cls(Path(out), f"{scene.name}_{scene.method.name}")
         for p in (o.run_file, o.frames, o.snapshots, o.checkpoint, o.chunks, o.lock):
             if p.resolve().parent != o.out.resolve():  # the scene name is checked; this is the guarantee
                 raise ValueError(f"{p} would lie outside --out {out}")
@@ -181,28 +181,28 @@ class RunFile:
         a = self.h5.attrs
         a["scene"] = scene_json(scene)
         a["versions"] = json.dumps(versions())
-        a["seed"] = np.uint64(scene.seed)
+        a["seed"] = np.uint64(scene.method.seed)
         a["created"] = time.strftime("%Y-%m-%dT%H:%M:%S%z")
         a["complete"] = False
         st = self.h5.create_group("stats")
         st.attrs["units"] = "number density (particles per unit volume)"
-        st.attrs["cell_volume"] = scene.cell_volume
+        st.attrs["cell_volume"] = scene.grid.cell_volume
         self._grow(st, "time", (), np.float64)
         self._grow(st, "n_samples", (), np.int64)
         # one member and no pooling: only the mean (= that member's density) means anything
-        self.keys = STAT_KEYS if scene.ensemble > 1 or scene.t_equil is not None else STAT_KEYS[:1]
+        self.keys = STAT_KEYS if scene.method.ensemble > 1 or scene.stats.t_equil is not None else STAT_KEYS[:1]
         for k in self.keys:
-            self._grow(st, k, scene.cells, np.float64)
+            self._grow(st, k, scene.grid.cells, np.float64)
         if histogram_bins:
-            self._grow(st, "histogram", (*scene.cells, histogram_bins), np.int64).attrs["lo"] = scene.histogram[0]
-            self._grow(st, "histogram_outside", scene.cells, np.int64)
+            self._grow(st, "histogram", (*scene.grid.cells, histogram_bins), np.int64).attrs["lo"] = scene.stats.histogram[0]
+            self._grow(st, "histogram_outside", scene.grid.cells, np.int64)
         self.diag = self.h5.create_group("diagnostics")
         self.h5.flush()
 
     @classmethod
     def of(cls, outputs: Outputs, scene) -> "RunFile":
-        """The run file of ``outputs``, with as many histogram bins as ``scene.histogram`` asks."""
-        hist = scene.histogram
+        """The run file of ``outputs``, with as many histogram bins as ``scene.stats.histogram`` asks."""
+        hist = scene.stats.histogram
         return cls(outputs.run_file, scene, hist[1] - hist[0] + 1 if hist else None)
 
     @staticmethod

@@ -17,12 +17,12 @@ Builder = Callable[[Scene, np.ndarray, dict], Solver]  # (scene, particles per c
 
 
 def make_solver(scene: Scene, ppc: np.ndarray, member0: int = 0) -> Solver:
-    """The solver object for ``scene.method``, initialised from ``ppc`` particles per cell; its
+    """The solver object for ``scene.method.name``, initialised from ``ppc`` particles per cell; its
     members are members ``member0 …`` of the whole ensemble (chunks of a distributed run)."""
     grid = Grid.from_scene(scene)
-    real = ti.f32 if scene.precision == "f32" else ti.f64
-    common = dict(grid=grid, dt=scene.dt, ensemble=scene.ensemble, seed=scene.seed, real=real, member0=member0)
-    return BUILDERS[scene.method](scene, ppc, common)
+    real = ti.f32 if scene.method.precision == "f32" else ti.f64
+    common = dict(grid=grid, dt=scene.dt, ensemble=scene.method.ensemble, seed=scene.method.seed, real=real, member0=member0)
+    return BUILDERS[scene.method.name](scene, ppc, common)
 
 
 def _spde(ppc: np.ndarray, common: dict, gaussian: bool, track_mean: bool = False) -> SPDESolver:
@@ -34,14 +34,14 @@ def _spde(ppc: np.ndarray, common: dict, gaussian: bool, track_mean: bool = Fals
 def _particle(scene: Scene, ppc: np.ndarray, common: dict) -> ParticleSolver:
     capacity = ParticleSolver.capacity_for(common["grid"], ppc)  # its memory was checked with the scene
     solver = ParticleSolver(capacity=capacity, **common)
-    solver.initialize(ppc, exact_uniform=scene.particle_init == "exact_uniform")
+    solver.initialize(ppc, exact_uniform=scene.method.particle_init == "exact_uniform")
     return solver
 
 
 def _hybrid(scene: Scene, ppc: np.ndarray, common: dict) -> HybridSolver:
-    spde = _spde(ppc, common, gaussian=scene.spde == "gaussian", track_mean=scene.ghost_profile == "mean")
-    solver = HybridSolver(spde, scene.regrid, scene.regrid_interval, scene.seed, scene.ghost_profile,
-                          scene.particle_substeps)
+    spde = _spde(ppc, common, gaussian=scene.hybrid.spde == "gaussian", track_mean=scene.hybrid.ghost_profile == "mean")
+    solver = HybridSolver(spde, scene.hybrid.regrid, scene.hybrid.regrid_interval, scene.method.seed, scene.hybrid.ghost_profile,
+                          scene.hybrid.particle_substeps)
     solver.initialize()
     return solver
 

@@ -27,19 +27,19 @@ class ProfileRenderer:
     """The four moment profiles of a 1D ``scene`` at one time, as an RGB array."""
 
     def __init__(self, scene):
-        if scene.dim != 1:
+        if scene.grid.dim != 1:
             raise ValueError("profiles are drawn for 1D scenes")
         self.scene = scene
-        self.vol = scene.cell_volume
-        n, L = scene.cells[0], scene.lengths[0]
+        self.vol = scene.grid.cell_volume
+        n, L = scene.grid.cells[0], scene.grid.lengths[0]
         self.x = (np.arange(n) + 0.5) * (L / n)
         self.edges = np.arange(n + 1) * (L / n)
         self.ppc0 = scene.initial_ppc
         whole = np.allclose(self.ppc0, np.round(self.ppc0))
-        periodic = all(side == "periodic" for side in scene.boundary[0])
-        closed = all(side in ("periodic", "neumann") for side in scene.boundary[0])
-        self.stationary = scene.t_equil is not None and whole and closed
-        self.transient = scene.t_equil is None and periodic
+        periodic = all(side == "periodic" for side in scene.grid.boundary[0])
+        closed = all(side in ("periodic", "neumann") for side in scene.grid.boundary[0])
+        self.stationary = scene.stats.t_equil is not None and whole and closed
+        self.transient = scene.stats.t_equil is None and periodic
         self.fig = Figure(figsize=(11, 7), dpi=DPI)
         FigureCanvasAgg(self.fig)
         self.axes = list(self.fig.subplots(2, 2).flat)
@@ -53,8 +53,8 @@ class ProfileRenderer:
             return {k: np.full(len(self.x), float(v)) for k, v in m.items()}, "exact (binomial)"
         if self.transient and t > 0:
             sc = self.scene
-            k = sc.particle_substeps if sc.method == "hybrid" else 1  # the walk's own step
-            return (theory.particle_counts_periodic(self.ppc0, sc.lengths, sc.dt / k, round(t / sc.dt) * k),
+            k = sc.hybrid.particle_substeps if sc.method.name == "hybrid" else 1  # the walk's own step
+            return (theory.particle_counts_periodic(self.ppc0, sc.grid.lengths, sc.dt / k, round(t / sc.dt) * k),
                     "exact (Poisson-binomial, clamped walk)")
         return None, None
 
@@ -66,8 +66,8 @@ class ProfileRenderer:
                 "skewness": row["skewness"], "kurtosis": row["kurtosis"]}
         exact, name = self.exact(t)
         samples = int(row["n_samples"])
-        what = "samples pooled after t_equil" if sc.t_equil is not None else "members"
-        self.fig.suptitle(f"{sc.name}: {sc.method}, {samples:,} {what}, {sc.cells[0]} cells     {time_label(t)}",
+        what = "samples pooled after t_equil" if sc.stats.t_equil is not None else "members"
+        self.fig.suptitle(f"{sc.name}: {sc.method.name}, {samples:,} {what}, {sc.grid.cells[0]} cells     {time_label(t)}",
                           fontsize=12)
         for ax, k in zip(self.axes, MOMENTS):
             ax.clear()
@@ -76,7 +76,7 @@ class ProfileRenderer:
                                 lw=0, transform=ax.get_xaxis_transform(), label="particle region")
             if exact is not None:
                 ax.plot(self.x, exact[k], color="0.5", lw=3, alpha=0.6, label=name)
-            ax.plot(self.x, prof[k], color="C0", lw=1.2, marker=".", ms=3, label=sc.method)
+            ax.plot(self.x, prof[k], color="C0", lw=1.2, marker=".", ms=3, label=sc.method.name)
             ax.set(xlabel="x [L]", ylabel=UNITS[k], xlim=(self.edges[0], self.edges[-1]))
             if k in ("skewness", "kurtosis"):  # nearly empty cells have huge moments: range from the rest
                 seen = [v[prof["mean"] >= MIN_MEAN] for v in (prof[k], *([exact[k]] if exact else []))]

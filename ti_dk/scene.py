@@ -80,7 +80,7 @@ def main(argv: list[str] | None = None) -> int:
                 warnings.simplefilter("always", config.ClampWarning)
                 scene = config.load_scene(args.scene, **overrides)
                 if args.quick and "cells" not in overrides:
-                    scene = config.load_scene(args.scene, **overrides, cells=[max(8, n // 4) for n in scene.cells])
+                    scene = config.load_scene(args.scene, **overrides, cells=[max(8, n // 4) for n in scene.grid.cells])
             for w in caught:
                 print(f"ti_dk: warning: {w.message}", file=sys.stderr)
             config.check_options(scene, out=args.out, executor=args.executor, workers=args.workers,
@@ -117,8 +117,8 @@ def _announce(scene: config.Scene) -> None:
     steps, seconds = config.work_estimate(scene)
     if seconds > LONG_RUN:
         when = f"{seconds / 3600:.3g} h" if seconds > 3600 else f"{seconds / 60:.3g} min"
-        print(f"ti_dk: {steps:,} steps of dt = {scene.dt:.4g} for {scene.ensemble:,} member(s) of "
-              f"{'x'.join(map(str, scene.cells))} cells: about {when} on 2 CPU cores (a rough estimate)",
+        print(f"ti_dk: {steps:,} steps of dt = {scene.dt:.4g} for {scene.method.ensemble:,} member(s) of "
+              f"{'x'.join(map(str, scene.grid.cells))} cells: about {when} on 2 CPU cores (a rough estimate)",
               file=sys.stderr)
 
 

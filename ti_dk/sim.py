@@ -2,7 +2,6 @@
 handlers that are due (:mod:`ti_dk.handlers`), and the end-of-run summary."""
 from __future__ import annotations
 
-import dataclasses
 import math
 import sys
 import time
@@ -31,7 +30,7 @@ class RunOptions:
     arch: str = "cpu"  # the Taichi backend, if Taichi is not started yet
     threads: int | None = None  # CPU threads, if Taichi is not started yet (None: all cores)
     frames: bool | None = None  # PNG frames at the output times (with an output; None: yes)
-    movie: bool = False  # also scene.movie_frames evenly spaced frames and an MP4
+    movie: bool = False  # also scene.output.movie_frames evenly spaced frames and an MP4
     snapshots: bool | None = None  # openPMD snapshots of member 0, 2D/3D (with an output; None: yes)
     checkpoint_every: int = 0  # steps between checkpoints (0: none)
     restart: Path | None = None  # the checkpoint to continue from
@@ -48,7 +47,7 @@ def run(scene: Scene, out: str | Path | None = None, progress: bool | None = Non
     set) pools every ``sample_every``-th step after ``t_equil`` into one row. With ``out``:
     ``<scene>_<method>.h5`` (statistics, diagnostics), by default PNG frames at the output times
     (``frames``: 2D/3D densities of member 0, 1D moment profiles; ``movie`` adds
-    ``scene.movie_frames`` evenly spaced frames and ``<scene>_<method>.mp4``) and, for 2D/3D
+    ``scene.output.movie_frames`` evenly spaced frames and ``<scene>_<method>.mp4``) and, for 2D/3D
     scenes, openPMD snapshots of member 0 (``snapshots``).
     ``checkpoint_every`` K writes ``<scene>_<method>_checkpoint.h5`` every K steps (atomically);
     ``restart`` continues from such a file, bit for bit as if never interrupted. ``member0``: the
@@ -108,11 +107,11 @@ def _run(scene: Scene, outputs: Outputs | None, opts: RunOptions) -> Result:
 
 
 def _solvers(scene: Scene, member0: int) -> tuple[Solver, Solver | None]:
-    """The scene's solver and that of the method run alongside (``scene.compare``), if any."""
+    """The scene's solver and that of the method run alongside (``scene.method.compare``), if any."""
     ppc = scene.initial_ppc
     try:
         solver = make_solver(scene, ppc, member0)
-        other = make_solver(dataclasses.replace(scene, method=scene.compare), ppc, member0) if scene.compare else None
+        other = make_solver(scene.replace(method=scene.method.compare), ppc, member0) if scene.method.compare else None
     except OverflowError as exc:
         raise SimulationError(str(exc)) from None
     return solver, other
@@ -130,11 +129,11 @@ class Controller:
         self.rf = RunFile.of(outputs, scene) if outputs else None  # statistics and diagnostics
         frames = outputs is not None and (opts.frames is not False or opts.movie)
         steps = _frame_steps(scene, frames, opts.movie)
-        self.statistics = Statistics(scene, solver, self.rf, prog, steps if frames and scene.dim == 1 else ())
+        self.statistics = Statistics(scene, solver, self.rf, prog, steps if frames and scene.grid.dim == 1 else ())
         self.diagnostics = Diagnostics(self.rf, prog.diag, self.statistics)
         writer = _frame_writer(outputs, scene, other) if frames else None
         self.frames = Frames(scene, solver, other, writer, steps, prog.frames, self.statistics)
-        draw_snapshots = outputs is not None and scene.dim >= 2 and opts.snapshots is not False
+        draw_snapshots = outputs is not None and scene.grid.dim >= 2 and opts.snapshots is not False
         self.snapshots = Snapshots(scene, solver, outputs.snapshots if draw_snapshots else None)
         every = opts.checkpoint_every
         self.checkpoints = Checkpoints(scene, (solver, other), outputs.checkpoint if outputs and every else None,
@@ -161,7 +160,7 @@ class Controller:
         if not math.isfinite(d["mass"]):
             raise SimulationError(
                 f"the density became NaN or infinite at step {n + 1} (t = {(n + 1) * self.scene.dt:.4g}): "
-                f"the scheme is unstable at C = {self.scene.C}; lower C")
+                f"the scheme is unstable at C = {self.scene.time.C}; lower C")
         self.diagnostics.append((n + 1) * self.scene.dt, d)
 
     def record(self, n: int) -> None:
@@ -196,8 +195,8 @@ class Controller:
             self.rf.annotate("timing", timing)
             self.rf.close(wall)
         sc, st = self.scene, self.statistics
-        return Result(scene=sc, times=np.array(st.times), cell_volume=sc.cell_volume,
-                      stats=stats_of(st.rows, sc.histogram),
+        return Result(scene=sc, times=np.array(st.times), cell_volume=sc.grid.cell_volume,
+                      stats=stats_of(st.rows, sc.stats.histogram),
                       diagnostics={k: np.asarray(v) for k, v in self.diagnostics.diag.items()},
                       final_density=self.solver.density(), wall_time=wall, path=self.rf.path if self.rf else None,
                       regrids=regrids, timing=timing, frames=self.frames.files(), rows=st.rows, written=self.written)
@@ -208,7 +207,7 @@ class StepBar:
     ``compile`` and left out of the rate and the ETA."""
 
     def __init__(self, scene: Scene, start: int, show: bool, clock: Clock):
-        self.label = f"{scene.name}/{scene.method}"
+        self.label = f"{scene.name}/{scene.method.name}"
         self.bar = tqdm(total=scene.n_steps, initial=start, disable=not show, unit="step",
                         desc=f"{self.label}: compiling", file=sys.stderr, mininterval=0.5)
         self.clock = clock  # where the first step's time moves to "compile"
@@ -244,9 +243,9 @@ class StepBar:
 def _frame_steps(scene: Scene, frames: bool, movie: bool) -> set[int]:
     """The steps that get a frame: the output steps (and step 0 in 2D/3D), plus evenly spaced ones
     for a movie (not for a stationary scene)."""
-    steps = set(scene.output_steps) | ({0} if frames and scene.dim > 1 else set())
-    if movie and scene.t_equil is None:
-        steps |= {round(k * scene.n_steps / scene.movie_frames) for k in range(scene.movie_frames + 1)}
+    steps = set(scene.output_steps) | ({0} if frames and scene.grid.dim > 1 else set())
+    if movie and scene.stats.t_equil is None:
+        steps |= {round(k * scene.n_steps / scene.output.movie_frames) for k in range(scene.output.movie_frames + 1)}
     return steps
 
 
@@ -260,11 +259,11 @@ def _frame_writer(outputs: Outputs, scene: Scene, other: Solver | None):
 def summary(result: Result) -> str:
     """The end-of-run message: what ran, every method's negative cells, where the time went (in
     step order, compilation apart) and every file written."""
-    sc, d, E = result.scene, result.diagnostics, result.scene.ensemble
+    sc, d, E = result.scene, result.diagnostics, result.scene.method.ensemble
     members = f"{E:,} member{'s' * (E != 1)}"
     every = " (all members)" if E > 1 else ""
     t = result.times[-1] if len(result.times) else sc.n_steps * sc.dt
-    lines = [f"{sc.name}/{sc.method}: {sc.n_steps:,} steps of dt = {sc.dt:.4g} to t = {t:.4g}, {members}, "
+    lines = [f"{sc.name}/{sc.method.name}: {sc.n_steps:,} steps of dt = {sc.dt:.4g} to t = {t:.4g}, {members}, "
              f"{result.wall_time:.1f} s"]
     mass = f"{d['mass'][-1] / E:,.6g} particles{' per member' * (E > 1)}" if "mass" in d else None
 
@@ -279,17 +278,17 @@ def summary(result: Result) -> str:
         n = d["particles"][-1] / E
         where = f"{n:,.1f}" if E > 1 else f"{int(n):,}"
         where += f" particles{' per member' * (E > 1)} in the particle region"
-        if sc.regrid_interval == 0:
+        if sc.hybrid.regrid_interval == 0:
             covered = f": {result.regrids[0]['covered_cells'] / E:,.0f} cells{' per member' * (E > 1)}" \
                 if result.regrids else ""
             where += f" (fixed at the start{covered})"
         else:
             where += f" after {len(result.regrids):,} regrids"
         main.append(where)
-    lines.append(f"  {sc.method}: " + "; ".join(main))
-    if sc.compare and "compare_negative_cells" in d:
-        lines.append(f"  {sc.compare} (run alongside): {negative('compare_')}")
-    names = {"compile": "compile (first step)", "solver": sc.method}
+    lines.append(f"  {sc.method.name}: " + "; ".join(main))
+    if sc.method.compare and "compare_negative_cells" in d:
+        lines.append(f"  {sc.method.compare} (run alongside): {negative('compare_')}")
+    names = {"compile": "compile (first step)", "solver": sc.method.name}
     parts = [f"{names.get(k, k)} {v:.2f} s" for k, v in result.timing.items() if k != "total"]
     if parts:
         lines.append("time: " + ", ".join(parts) + f"; total {result.wall_time:.2f} s")
@@ -319,14 +318,14 @@ def _close_quietly(rf: RunFile, wall: float, error: str) -> None:
 
 def _renderer(scene: Scene, ppc: np.ndarray, other: Solver | None):
     """What draws this scene's frames: moment profiles in 1D, density panels in 2D and 3D."""
-    if scene.dim == 1:
+    if scene.grid.dim == 1:
         from .profiles import ProfileRenderer
 
         return ProfileRenderer(scene)
     from .render import Renderer, colour_max
 
-    methods = scene.method + (f" (left) and {scene.compare} (right)" if other and scene.dim == 2 else
-                              f" (top) and {scene.compare} (bottom)" if other else "")
-    return Renderer(scene.cells, scene.lengths, 1 + bool(other), colour_max(ppc),
-                    f"{scene.name}: {methods}, {'×'.join(map(str, scene.cells))} cells, member 0")
+    methods = scene.method.name + (f" (left) and {scene.method.compare} (right)" if other and scene.grid.dim == 2 else
+                              f" (top) and {scene.method.compare} (bottom)" if other else "")
+    return Renderer(scene.grid.cells, scene.grid.lengths, 1 + bool(other), colour_max(ppc),
+                    f"{scene.name}: {methods}, {'×'.join(map(str, scene.grid.cells))} cells, member 0")
 
