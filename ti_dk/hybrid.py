@@ -150,8 +150,8 @@ class HybridSolver:
             self.q_old.copy_from(self.spde.q)
         self._fill_ghosts(n * k, 0.0, tilt_on)
         t1 = _clock()
-        self.spde._fluxes(n)
-        self.spde._update()
+        self.spde.fluxes(n)
+        self.spde.update()
         t2 = _clock()
         self._s1(self.n_ring)
         self.clamped[None] = 0
@@ -164,7 +164,7 @@ class HybridSolver:
             self._compact(self.pool, self.cur)
             self.cur = 1 - self.cur
         self._sync(self.n_cover, self.n_ring)
-        self.spde._diagnose()
+        self.spde.diagnose()
         t3 = _clock()
         self.timing["spde"] += t2 - t1
         self.timing["particles"] += (t1 - t0) + (t3 - t2)
@@ -247,7 +247,7 @@ class HybridSolver:
         if self._check_need() > self.pool.capacity:  # the estimate bounds it; kept as a guard
             raise RuntimeError("particle pool estimate too small at a regrid")
         self._change += self.created[None] - self.removed[None]
-        self.spde._diagnose()
+        self.spde.diagnose()
 
     def state(self) -> dict[str, np.ndarray]:
         """SPDE fields, region, boxes, regrid log and the particles (compacted, with their ids)."""
@@ -644,7 +644,7 @@ class HybridSolver:
                         self.wall_inflow[None] += ti.cast(self.spde.flux[J][a], ti.f64) * area
                 if ti.static(self.grid.boundary[a][1] == DIRICHLET):
                     if J[a + 1] == self.n[a] - 1:
-                        self.wall_inflow[None] -= ti.cast(self.spde.flux[self.spde._upper(J, a)][a], ti.f64) * area
+                        self.wall_inflow[None] -= ti.cast(self.spde.flux[self.spde.upper(J, a)][a], ti.f64) * area
 
     @ti.func
     def _ring_cell(self, i):
@@ -676,7 +676,7 @@ class HybridSolver:
                     if has_lo and self.covered[lo]:
                         corr += k * self.spde.flux[J][a]
                     if has_hi and self.covered[hi]:
-                        corr -= k * self.spde.flux[self.spde._upper(J, a)][a]
+                        corr -= k * self.spde.flux[self.spde.upper(J, a)][a]
                 self.spde.q[J] += corr
 
     @ti.kernel
