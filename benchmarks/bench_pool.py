@@ -9,7 +9,7 @@ region, and leave the survivors ready for the next step.
 - sparse: ``pointer`` blocks of 8×8 cells, each with a ``dynamic`` list, double-buffered (a
   ``dynamic`` list cannot remove); a step appends each survivor to its destination block in the
   other buffer, then deactivates the old buffer. Memory follows the occupied blocks.
-- flat (ti_dk.hybrid.ParticlePool): one array per member, survivors marked in place and compacted
+- flat (ti_dk.pool.ParticlePool): one array per member, survivors marked in place and compacted
   by a blocked exclusive scan into the other buffer; capacity sized from the region.
 
 Prints particle steps per second for both.
@@ -100,10 +100,10 @@ def run_flat(cells, fraction, ppc, reps):
             ti.sync()
             t = time.perf_counter()
         total += int(s.n_real.to_numpy()[0]) if n >= 3 else 0
-        s._walk(s.pool, s.cur, n)
-        s._compact(s.pool, s.cur)
+        s.coupling.walk(s.pool, s.cur, n, 1)
+        s.pool.compact(s.cur)
         s.cur = 1 - s.cur
-        s._sync(s.n_cover, 0)
+        s.coupling.sync(s.n_cover, 0)
     ti.sync()
     return total / (time.perf_counter() - t)
 

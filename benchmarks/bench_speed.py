@@ -97,7 +97,7 @@ def worker(case, threads, arch, blocks):
             if CLOCK is not time.perf_counter:  # its share of the CPU time, as the wall-time share
                 dt *= (CLOCK() - c0) / (s.timing["particles"] + s.timing["spde"] - t0 - spde0)
             best = min(best, dt / 10)
-        walked = s.diagnostics()["particles"] + int(s.ring.to_numpy().sum() * 5.0)
+        walked = s.diagnostics()["particles"] + int(s.regions.ring.to_numpy().sum() * 5.0)
         return 1e9 * best / walked
     raise ValueError(case)
 

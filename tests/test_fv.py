@@ -133,9 +133,9 @@ def test_fused_1d_step_equals_the_three_kernel_step(boundary):
     b.initialize(ppc)
     for n in range(20):
         a.step(n)
-        b._fluxes(n)
-        b._update()
-        b._diagnose()
+        b.fluxes(n)
+        b.update()
+        b.diagnose()
         assert np.array_equal(a.q.to_numpy(), b.q.to_numpy())
         da, db = a.diagnostics(), b.diagnostics()
         assert da["negative_cells"] == db["negative_cells"] and da["min_density"] == db["min_density"]

@@ -1,10 +1,10 @@
-"""Grid geometry against hand-computed values, and cell_of at and around every face."""
+"""Grid geometry against hand-computed values, cell_of at and around every face, and the face rule (across)."""
 import numpy as np
 import pytest
 import taichi as ti
 
 from ti_dk import load_scene
-from ti_dk.grid import DIRICHLET, NEUMANN, PERIODIC, Grid, cell_of, numpy_dtype
+from ti_dk.grid import DIRICHLET, INTERIOR, NEUMANN, PERIODIC, Grid, across, cell_of, face_kind, numpy_dtype
 
 
 def test_geometry_of_an_anisotropic_2d_grid():
@@ -52,3 +52,41 @@ def test_cell_of_at_faces_and_outside():
                            np.minimum(k, n - 1),  # cell centres
                            [0, 0, n - 1, n - 1]])  # outside: clamped into [0, n)
     assert out.tolist() == want.tolist()
+
+
+@ti.data_oriented
+class _Faces:
+    def __init__(self, grid):
+        self.grid = grid
+
+    @ti.kernel
+    def across(self, J: ti.types.ndarray(), a: ti.template(), side: ti.template(), out: ti.types.ndarray()):
+        for i in range(J.shape[0]):
+            K, inside = across(self.grid, ti.Vector([J[i, 0], J[i, 1], J[i, 2]]), a, side)
+            out[i, 0], out[i, 1], out[i, 2], out[i, 3] = K[0], K[1], K[2], ti.cast(inside, ti.i32)
+
+    @ti.kernel
+    def kinds(self, a: ti.template(), out: ti.types.ndarray()):
+        for i in range(out.shape[0]):
+            out[i] = face_kind(self.grid, i, a)
+
+
+def test_across_and_face_kind_under_every_boundary():
+    # axis 0: Dirichlet below, Neumann above; axis 1 periodic; J = (member, i, j)
+    g = Grid((4, 3), (1.0, 1.0), ((DIRICHLET, NEUMANN), (PERIODIC, PERIODIC)), ((5.0, 0.0), (0.0, 0.0)))
+    f = _Faces(g)
+    J = np.array([[1, 0, 0], [1, 3, 2], [0, 2, 1]], dtype=np.int32)
+    got = {}
+    for a in range(2):
+        for side in range(2):
+            out = np.zeros((3, 4), dtype=np.int32)
+            f.across(J, a, side, out)
+            got[a, side] = out.tolist()
+    assert got[0, 0] == [[1, -1, 0, 0], [1, 2, 2, 1], [0, 1, 1, 1]]  # below the Dirichlet side: the ghost layer
+    assert got[0, 1] == [[1, 1, 0, 1], [1, 4, 2, 0], [0, 3, 1, 1]]  # beyond the Neumann side, likewise
+    assert got[1, 0] == [[1, 0, 2, 1], [1, 3, 1, 1], [0, 2, 0, 1]]  # periodic: the image
+    assert got[1, 1] == [[1, 0, 1, 1], [1, 3, 0, 1], [0, 2, 2, 1]]  # and face n is face 0
+    for a, want in ((0, [DIRICHLET, INTERIOR, INTERIOR, INTERIOR, NEUMANN]), (1, [PERIODIC, INTERIOR, INTERIOR, PERIODIC])):
+        out = np.zeros(len(want), dtype=np.int32)
+        f.kinds(a, out)
+        assert out.tolist() == want

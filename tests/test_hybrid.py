@@ -1,5 +1,5 @@
 """The AMAR hybrid against exact answers: conservation to round-off, the regrid ledger, the
-Poisson-binomial void, positivity, one ghost set per cell and independence of the box layout."""
+Poisson-binomial void and positivity (box layout and ghost ring: test_region.py)."""
 import warnings
 
 import numpy as np
@@ -7,7 +7,6 @@ import pytest
 
 from ti_dk import load_scene, theory
 from ti_dk.config import ClampWarning
-from ti_dk.regrid import mask
 from ti_dk.sim import make_solver
 
 
@@ -88,26 +87,6 @@ def test_dirichlet_ledger():
     mass, inflow = h["mass"], h["boundary_inflow"][1:]
     assert np.allclose(np.diff(mass), inflow, rtol=0, atol=1e-9 * mass[0])
     assert inflow.sum() != 0
-
-
-def test_box_layout_does_not_matter_and_shared_ghosts_are_sampled_once():
-    scene = load_scene("equilibrium1d", method="hybrid", cells=[16, 16], regrid_interval=0, threshold=1, ppc=3,
-                       t_equil=None, histogram=None, seed=7, ensemble=1)
-    one = [((2, 2), (7, 12)), ((8, 2), (12, 12))]  # two boxes with a one-cell gap (x = 7) between them
-    other = [((2, 2), (5, 7)), ((2, 7), (7, 12)), ((5, 2), (7, 7)), ((8, 2), (12, 5)), ((8, 5), (12, 12))]
-    assert np.array_equal(mask(one, (16, 16)), mask(other, (16, 16)))
-    final = []
-    for boxes in (one, other):
-        s = _solver(scene)
-        s.set_region(mask(boxes, (16, 16))[None], 0)
-        # 3 particles per cell everywhere: the ghost ring gets exactly 3 per ghost cell, once each,
-        # the gap column included although it borders both boxes
-        s._fill(s.pool, s.cur, 0, s.n_ring, 0.0, 1)
-        n_ghost = s.pool.n.to_numpy()[s.cur, 0] - s.n_real.to_numpy()[0]
-        assert n_ghost == 3 * s.ring.to_numpy().sum() == 3 * (12 * 12 - 9 * 10)
-        _run_steps(s, 30)
-        final.append(s.density())
-    assert np.array_equal(final[0], final[1])
 
 
 def _case_v(members, **kw):
@@ -239,7 +218,7 @@ def test_regrid_on_demand():
     demand = [r for r in s.regrids if r["on_demand"]]
     assert len(demand) > 3 and (s.region() & ~start).sum() > 20
     # an extension now leaves no uncovered cell below the threshold
-    assert s._mark_low(4.0) > 0
+    assert s.regions.mark_low(s.spde.q, 4.0) > 0
     s.extend(60)
     q = s.density() * vol
     assert q[~s.region()].min() >= 4.0

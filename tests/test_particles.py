@@ -69,8 +69,9 @@ def test_walls_and_reservoirs(boundary):
         mass.append(d["mass"])
         inflow.append(d["boundary_inflow"])
         clamped += d["clamped_steps"]
-    x = s.x.to_numpy()[:, :, 0]
-    alive = np.arange(x.shape[1])[None, :] < s.n_alive.to_numpy()[:, None]
+    st = s.state()
+    x = st["x"][:, :, 0]
+    alive = np.arange(x.shape[1])[None, :] < st["n_alive"][:, None]
     assert np.all((x[alive] >= 0) & (x[alive] <= 1))
     assert np.array_equal(np.diff(mass), inflow)  # every particle accounted for, exactly
     assert clamped > 0  # C = 0.25 clamps ~5 % of steps: counted
@@ -98,8 +99,9 @@ for cells, E, bc in (((50,), 16, ((0, 0),)), ((20, 16), 2, ((2, 1), (0, 0))), ((
     s.initialize(ppc)
     for n in range(30):
         s.step(n)
-    h.update(s.x.to_numpy().tobytes())
-    h.update(s.n_alive.to_numpy().tobytes())
+    st = s.state()
+    h.update(st["x"].tobytes())
+    h.update(st["n_alive"].tobytes())
 print(h.hexdigest())
 """
 

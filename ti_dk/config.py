@@ -42,6 +42,7 @@ import numpy as np  # noqa: E402
 from . import initial  # noqa: E402
 from .grid import Grid  # noqa: E402
 from .regrid import RegridParams  # noqa: E402
+from .rng import PURPOSE_BITS  # noqa: E402
 
 SCENE_DIR = Path(__file__).resolve().parent.parent / "scenes"
 METHODS = ("fv", "gaussian", "particle", "hybrid")
@@ -51,7 +52,10 @@ BOUNDARY_KINDS = ("periodic", "neumann", "dirichlet")
 PRECISIONS = ("f32", "f64")
 PARTICLE_INITS = ("per_cell", "exact_uniform")
 ID_BITS_MIN = 8  # hybrid particle ids: birth cell in the high bits, at least this many for the index in the cell
-HYBRID_STEP_LIMIT = 1 << 27  # hybrid: particle steps a run may take (birth steps live in 27 bits)
+# hybrid: particle steps a run may take. A particle's birth word (birth step + 1, or'd with this
+# flag for particles sampled at a regrid: ghosts.REGRID_BIRTH) is shifted left by rng.PURPOSE_BITS
+# into one 32-bit counter word (particles.Walker.bits), so birth steps live in 27 bits
+HYBRID_STEP_LIMIT = 1 << (32 - PURPOSE_BITS - 1)
 CLAMP_WARN = 1e-3  # warn when a particle step is clamped with more than this probability
 MAX_STEPS = 2**32 - 1  # the step is one 32-bit word of every random-number counter (rng.py)
 MAX_MEMBERS = 2**32  # so is the member index
@@ -623,11 +627,13 @@ PARTICLE_RATE = 3e7  # particle steps per second, likewise
 def _particles(scene: Scene) -> float:
     """The particles per member the particle method must hold (an upper bound for huge grids)."""
     from .particles import ParticleSolver  # pure NumPy; imported here to keep config light
+    from .pool import capacity
 
     m = math.prod(scene.grid.cells)
     if m <= 10**7:
         return ParticleSolver.capacity_for(Grid.from_scene(scene), scene.initial_ppc)
-    return 1.25 * math.ceil(_ppc_max(scene)) * m + 64
+    most = math.ceil(_ppc_max(scene)) * m  # every cell at the largest density
+    return capacity(most) if Grid.from_scene(scene).has_dirichlet else most
 
 
 def _ppc_max(scene: Scene) -> float:
@@ -653,7 +659,9 @@ def memory_estimate(scene: Scene) -> dict[str, float]:
             est["particles"] += 2 * 1.5 * min(scene.hybrid.threshold, _ppc_max(scene)) * mc * (scene.grid.dim * real + 8)
         if method == "particle":
             est["fields"] += mc * 4
-            est["particles"] += scene.method.ensemble * _particles(scene) * (scene.grid.dim * real + 8 * Grid.from_scene(scene).has_dirichlet)
+            # with reservoirs: ids (8 bytes) and two buffers plus a keep flag (the pool compacts)
+            d = Grid.from_scene(scene).has_dirichlet
+            est["particles"] += scene.method.ensemble * _particles(scene) * ((1 + d) * (scene.grid.dim * real + 8 * d) + d)
     est["host copies"] = 3 * mc * 8  # density read back as float64, and its statistics update
     rows = 1 if scene.stats.t_equil is not None else len(scene.stats.output_times)
     est["statistics"] = (rows + 1) * cells * 12 * 8  # moments and accumulators per row

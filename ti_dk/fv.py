@@ -6,8 +6,8 @@ import numpy as np
 import taichi as ti
 
 from . import rng
+from .grid import DIRICHLET, NEUMANN, PERIODIC, Grid, across, face_kind, numpy_dtype
 from .solver import Solver
-from .grid import DIRICHLET, NEUMANN, PERIODIC, Grid, numpy_dtype
 
 
 @ti.data_oriented
@@ -82,9 +82,9 @@ class SPDESolver(Solver):
         if self.dim == 1 and not self.track_mean:
             self._step_members(n)
         else:
-            self._fluxes(n)
-            self._update()
-            self._diagnose()
+            self.fluxes(n)
+            self.update()
+            self.diagnose()
 
     def state(self) -> dict[str, np.ndarray]:
         """The fields a checkpoint needs to continue bit for bit."""
@@ -94,7 +94,7 @@ class SPDESolver(Solver):
         self.q.from_numpy(st["q"])
         if self.track_mean:
             self.qbar.from_numpy(st["qbar"])
-        self._diagnose()
+        self.diagnose()
 
     def density(self) -> np.ndarray:
         """Number density of every member, ``(ensemble, *cells)``, float64."""
@@ -114,34 +114,25 @@ class SPDESolver(Solver):
     def _pair(self, f: ti.template(), J, a: ti.template(), reservoir: ti.template()):
         """Values of ``f`` left and right of the lower face of cell ``J`` along axis ``a``.
 
-        ``J`` carries the member index first; off-grid neighbours are periodic images or the
-        Dirichlet reservoir value ``reservoir[a]`` (the density, or its square root).
+        ``J`` carries the member index first; the left cell is :func:`grid.across` the face (a
+        periodic image), or beyond a side the Dirichlet reservoir value ``reservoir[a]`` (the
+        density, or its square root); so is the right one of the upper boundary face ``n_a``.
         """
-        n = ti.static(self.n[a])
-        lo, hi = ti.static(self.grid.boundary[a])
         res_lo, res_hi = ti.static(reservoir[a])
-        i = J[a + 1]
-        L = J - ti.Vector.unit(self.dim + 1, a + 1, ti.i32)
-        R = J
+        L, has_left = across(self.grid, J, a, 0)
         v = ti.Vector([self.real(0.0), self.real(0.0)])
-        if ti.static(lo == PERIODIC):
-            if i == 0:
-                L[a + 1] = n - 1
-            v = ti.Vector([f[L], f[R]])
+        if not has_left:
+            v = ti.Vector([self.real(res_lo), f[J]])
+        elif J[a + 1] == ti.static(self.n[a]):
+            v = ti.Vector([f[L], self.real(res_hi)])
         else:
-            if i == 0:
-                v = ti.Vector([self.real(res_lo), f[R]])
-            elif i == n:
-                v = ti.Vector([f[L], self.real(res_hi)])
-            else:
-                v = ti.Vector([f[L], f[R]])
+            v = ti.Vector([f[L], f[J]])
         return v
 
     @ti.func
     def _is_wall(self, i, a: ti.template()) -> bool:
         """Whether face index ``i`` along axis ``a`` is a Neumann (no-flux) wall."""
-        lo, hi = ti.static(self.grid.boundary[a])
-        return (lo == NEUMANN and i == 0) or (hi == NEUMANN and i == self.n[a])
+        return face_kind(self.grid, i, a) == NEUMANN
 
     @ti.func
     def _face_noise(self, J, step):
@@ -183,8 +174,12 @@ class SPDESolver(Solver):
                     self.inflow[None] += ti.cast(F, ti.f64) * area
         return F
 
+    # -- the split step (public: the hybrid runs its particles between these) ------------
     @ti.kernel
-    def _fluxes(self, step: ti.u32):
+    def fluxes(self, step: ti.u32):
+        """First part of step ``step``: every face flux F of eq. (8) into :attr:`flux` (and ½∇q̄,
+        eq. 10, into ``flux_bar``), and the Dirichlet inflow they carry into :attr:`inflow`; q is
+        not changed. Noise keyed on (seed, member, ``step``, face)."""
         self.inflow[None] = 0.0
         for J in ti.grouped(self.root):  # the amplitude's square roots, once per cell
             self.root[J] = ti.sqrt(ti.max(self._amplitude_of[J], self.real(0.0)))
@@ -215,12 +210,10 @@ class SPDESolver(Solver):
                     self.flux[J][a] = self._face_flux(J, a, word)
 
     @ti.func
-    def _upper(self, J, a: ti.template()):
-        """Index of the upper face of cell ``J`` along ``a`` (the periodic image of face n is face 0)."""
-        up = J + ti.Vector.unit(self.dim + 1, a + 1, ti.i32)
-        if ti.static(self.grid.boundary[a][1] == PERIODIC):
-            if up[a + 1] == self.n[a]:
-                up[a + 1] = 0
+    def upper(self, J, a: ti.template()):
+        """Index in :attr:`flux` of the upper face of cell ``J`` (member index first) along axis
+        ``a``: :func:`grid.across` the upper face (periodic: face ``n_a`` is face 0)."""
+        up, _ = across(self.grid, J, a, 1)
         return up
 
     @ti.func
@@ -228,11 +221,13 @@ class SPDESolver(Solver):
         """Σ_a (F_{J+½e_a} − F_{J−½e_a}) / Δx_a: the right-hand side of eq. (9) (or of eq. 10 for q̄)."""
         dq = self.real(0.0)
         for a in ti.static(range(self.dim)):
-            dq += (flux[self._upper(J, a)][a] - flux[J][a]) * self.real(1.0 / self.grid.dx[a])
+            dq += (flux[self.upper(J, a)][a] - flux[J][a]) * self.real(1.0 / self.grid.dx[a])
         return dq
 
     @ti.kernel
-    def _update(self):
+    def update(self):
+        r"""Second part: eq. (9), :math:`q_I \mathrel{+}= Δt \sum_a (F_{I+½e_a} - F_{I-½e_a}) / Δx_a`,
+        with the fluxes of the last :meth:`fluxes` (and eq. 10 for q̄)."""
         for J in ti.grouped(self.q):
             self.q[J] += self.real(self.dt) * self._divergence(self.flux, J)
         if ti.static(self.track_mean):
@@ -241,7 +236,7 @@ class SPDESolver(Solver):
 
     @ti.kernel
     def _step_members(self, step: ti.u32):
-        """The 1D finite-volume step (:meth:`_fluxes`, :meth:`_update`, :meth:`_diagnose`) one member
+        """The 1D finite-volume step (:meth:`fluxes`, :meth:`update`, :meth:`diagnose`) one member
         at a time: a member's cells, faces and roots stay in the first-level cache through its
         four passes, and its diagnostics are summed locally with one atomic per member (not per
         cell). The same face functions give the same bits as the three-kernel step."""
@@ -276,7 +271,7 @@ class SPDESolver(Solver):
             self.n_negative[None] += negative
 
     @ti.kernel
-    def _diagnose(self):
+    def diagnose(self):
         """Mass, smallest density and negative cells of q as it stands (after a step or a hybrid sync)."""
         vol = ti.static(self.grid.cell_volume)
         self.mass[None] = 0.0

@@ -69,3 +69,50 @@ def numpy_dtype(real):
 def cell_of(x, h, n):
     """Index of the cell of width ``h`` holding coordinate ``x``, clamped into ``[0, n)``."""
     return ti.min(ti.max(ti.cast(ti.floor(x / h), ti.i32), 0), n - 1)
+
+
+INTERIOR = -1  # face_kind of a face that is not on the boundary
+
+
+@ti.func
+def across(grid: ti.template(), J, a: ti.template(), side: ti.template()):
+    """The cell across face ``side`` (0: lower, 1: upper) of cell ``J`` along axis ``a``, and
+    whether it is a grid cell: the one ghost-layer rule every solver uses (paper §2.2.1).
+
+    ``J`` carries the member index first (axis ``a`` is component ``a + 1``). A periodic side
+    wraps (the image is a grid cell); beyond a Neumann or Dirichlet side the result is the
+    ghost-layer index (−1 or ``n_a``) and ``False``: the caller mirrors the cell (Neumann: no
+    gradient, no flux) or takes the reservoir density (Dirichlet). For ``side = 1`` the result
+    is also the index of the upper face of ``J`` in a face array (the periodic image of face
+    ``n_a`` being face 0). ``regrid.grow`` applies the same rule to NumPy masks with ``np.roll``.
+    """
+    K = J
+    inside = True
+    n = ti.static(grid.cells[a])
+    if ti.static(side == 0):
+        K[a + 1] -= 1
+        if ti.static(grid.boundary[a][0] == PERIODIC):
+            if K[a + 1] < 0:
+                K[a + 1] = n - 1
+        else:
+            inside = K[a + 1] >= 0
+    else:
+        K[a + 1] += 1
+        if ti.static(grid.boundary[a][1] == PERIODIC):
+            if K[a + 1] == n:
+                K[a + 1] = 0
+        else:
+            inside = K[a + 1] < n
+    return K, inside
+
+
+@ti.func
+def face_kind(grid: ti.template(), i, a: ti.template()):
+    """The boundary kind of face ``i`` along axis ``a`` (faces ``0 … n_a``; face ``i`` is the lower
+    face of cell ``i``), or :data:`INTERIOR`."""
+    kind = INTERIOR
+    if i == 0:
+        kind = grid.boundary[a][0]
+    elif i == grid.cells[a]:
+        kind = grid.boundary[a][1]
+    return kind

@@ -4,11 +4,9 @@ import math
 import numpy as np
 import taichi as ti
 
-from . import rng
+from . import pool, rng
 from .grid import DIRICHLET, NEUMANN, PERIODIC, Grid, cell_of
 from .solver import Solver
-
-DEAD = 0xFFFFFFFF  # birth word of an absorbed particle
 
 
 @ti.data_oriented
@@ -135,8 +133,10 @@ class ParticleSolver(Solver):
     sides wrap, Neumann sides reflect, Dirichlet sides absorb what leaves and inject what a
     reservoir ghost layer at the reservoir density (sampled afresh each step) walks in.
 
-    Particles of member ``e`` occupy slots ``[0, n_alive[e])``; with Dirichlet sides a particle
-    carries an id (slot at birth, birth step + 1) because absorption compacts the slots.
+    Particles live in a :class:`pool.ParticlePool`, member ``e`` in slots ``[0, n[cur, e])``. With
+    Dirichlet sides a particle carries an id (slot at birth, birth step + 1), because absorption
+    compacts the slots (:meth:`pool.ParticlePool.compact`, into the pool's other buffer);
+    otherwise the slot is the id and one buffer suffices.
     """
 
     def __init__(self, grid: Grid, dt: float, ensemble: int, seed: int, real, capacity: int, member0: int = 0):
@@ -145,26 +145,25 @@ class ParticleSolver(Solver):
         self.n = grid.cells
         self.key = rng.seed_key(seed)
         self.walker = Walker(grid, dt, real, seed, member0)
-        self.x = ti.Vector.field(self.dim, real, shape=(ensemble, capacity))  # particle positions [length]
-        self.n_alive = ti.field(ti.i32, shape=ensemble)  # live particles of each member
+        open_ = grid.has_dirichlet
+        self.pool = pool.ParticlePool(ensemble, capacity, self.dim, real, buffers=1 + open_, ids=open_)
+        self.cur = 0  # the pool buffer holding the particles
         self.count = ti.field(ti.i32, shape=(ensemble, *self.n))  # particles per cell (after bin())
         self.clamped = ti.field(ti.i64, shape=())  # axis steps clamped to ±Δx in the last step
         self.inflow = ti.field(ti.i64, shape=())  # particles injected minus absorbed in the last step
         self.overflow = ti.field(ti.i32, shape=())  # set when a member needed more than `capacity` slots
-        if grid.has_dirichlet:
-            self.pid = ti.Vector.field(2, ti.u32, shape=(ensemble, capacity))  # (slot at birth, birth step + 1)
+        if open_:
             # reservoir ghost layer beyond each side of axis a: one cell thick
             self.layers = [tuple(1 if b == a else m for b, m in enumerate(self.n)) for a in range(self.dim)]
             self.cross = max(math.prod(layer) for layer in self.layers)
 
     @staticmethod
     def capacity_for(grid: Grid, ppc: np.ndarray) -> int:
-        """Slots per member: the most particles sampling ``ppc`` can give, with room for reservoirs."""
+        """Slots per member: the most particles sampling ``ppc`` can give; with reservoirs, room
+        (:func:`pool.capacity`) for that or a domain full at the reservoir density."""
         cap = int(np.ceil(ppc).sum())
         if grid.has_dirichlet:
-            res = grid.reservoir_ppc_max * math.prod(grid.cells)
-            cap = max(cap, int(res))
-            cap = int(1.25 * cap + 10 * math.sqrt(cap) + 64)
+            cap = pool.capacity(max(cap, grid.reservoir_ppc_max * math.prod(grid.cells)))
         return max(cap, 1)
 
     # -- public -------------------------------------------------------------------------
@@ -172,6 +171,7 @@ class ParticleSolver(Solver):
         """Sample particles: ``ppc`` per cell as ℓ plus one with probability α (mean ℓ + α), uniform
         in the cell; or, with ``exact_uniform``, N = Σ ppc particles uniform in the whole domain
         (the exact equilibrium of a closed box)."""
+        self.cur = 0
         if exact_uniform:
             self._place_uniform(int(round(ppc.sum())))
         else:
@@ -184,30 +184,34 @@ class ParticleSolver(Solver):
 
     def step(self, n: int) -> None:
         """Walk every particle from step ``n`` to ``n + 1``."""
-        self._walk(n)
-        if self.grid.has_dirichlet:
-            self._exchange(n)
+        self._walk(self.cur, n)
+        if self.grid.has_dirichlet:  # drop the absorbed (in order), then inject from the reservoirs
+            self.pool.compact(self.cur)
+            self.cur = 1 - self.cur
+            self._inject(self.cur, n)
             self._check_overflow()
 
     def state(self) -> dict[str, np.ndarray]:
         """The particles a checkpoint needs to continue bit for bit."""
-        st = {"x": self.x.to_numpy(), "n_alive": self.n_alive.to_numpy()}
-        return st | ({"pid": self.pid.to_numpy()} if self.grid.has_dirichlet else {})
+        b = self.cur
+        st = {"x": self.pool.x.to_numpy()[b], "n_alive": self.pool.n.to_numpy()[b]}
+        return st | ({"pid": self.pool.pid.to_numpy()[b]} if self.grid.has_dirichlet else {})
 
     def load_state(self, st: dict[str, np.ndarray]) -> None:
-        self.x.from_numpy(st["x"])
-        self.n_alive.from_numpy(st["n_alive"])
-        if self.grid.has_dirichlet:
-            self.pid.from_numpy(st["pid"])
+        n = st["n_alive"][None]
+        if self.pool.buffers == 2:
+            n = np.concatenate([n, np.zeros_like(n)])
+        self.pool.load(st["x"][None], st["pid"][None] if self.grid.has_dirichlet else None, n)
+        self.cur = 0
 
     def density(self) -> np.ndarray:
         """Number density of every member, ``(ensemble, *cells)``: counts / V_c, float64."""
-        self._bin()
+        self._bin(self.cur)
         return self.count.to_numpy().astype(np.float64) / self.grid.cell_volume
 
     def diagnostics(self) -> dict[str, float]:
         return {
-            "mass": float(self.n_alive.to_numpy().sum(dtype=np.int64)),
+            "mass": float(self.pool.n.to_numpy()[self.cur].sum(dtype=np.int64)),
             "min_density": math.nan,  # not binned every step; counts are never negative
             "negative_cells": 0,
             "boundary_inflow": float(self.inflow[None]),
@@ -236,11 +240,11 @@ class ParticleSolver(Solver):
                 for _ in range(m):
                     if k < self.capacity:
                         r = rng.philox4x32(ti.math.uvec4(ti.u32(k), 0, self.walker.member(e), ti.u32(rng.SAMPLE_POSITION)), key)
-                        self.x[e, k] = self.walker.in_cell(C, r, ti.Vector.zero(self.real, self.dim))
+                        self.pool.x[0, e, k] = self.walker.in_cell(C, r, ti.Vector.zero(self.real, self.dim))
                     k += 1
             if k > self.capacity:
                 self.overflow[None] = 1
-            self.n_alive[e] = ti.min(k, self.capacity)
+            self.pool.n[0, e] = ti.min(k, self.capacity)
 
     @ti.kernel
     def _place_uniform(self, total: ti.i32):
@@ -254,56 +258,53 @@ class ParticleSolver(Solver):
                 y = ti.Vector.zero(self.real, self.dim)
                 for a in ti.static(range(self.dim)):
                     y[a] = rng.uniform(r[a], self.real) * self.real(self.grid.lengths[a])
-                self.x[e, k] = y
+                self.pool.x[0, e, k] = y
         for e in range(self.ensemble):
-            self.n_alive[e] = ti.min(total, self.capacity)
+            self.pool.n[0, e] = ti.min(total, self.capacity)
 
     @ti.kernel
     def _init_ids(self):
         for e, k in ti.ndrange(self.ensemble, self.capacity):
-            self.pid[e, k] = ti.math.uvec2(ti.u32(k), 0)
+            self.pool.pid[0, e, k] = ti.math.uvec2(ti.u32(k), 0)
 
     @ti.kernel
-    def _walk(self, step: ti.u32):
+    def _walk(self, b: ti.i32, step: ti.u32):
+        """Move the particles of buffer ``b``; with Dirichlet sides mark the absorbed as not kept."""
         self.clamped[None] = 0
         self.inflow[None] = 0
         G = ti.static(self.walker.group)
+        x = ti.static(self.pool.x)
         if ti.static(self.grid.has_dirichlet):  # identities are not slots: one counter per particle
             for e, p in ti.ndrange(self.ensemble, self.capacity):
-                if p < self.n_alive[e]:
-                    id0, birth = self.pid[e, p][0], self.pid[e, p][1]
-                    y, alive, clamped = self.walker.move(self.x[e, p], e, id0, birth, step)
-                    self.x[e, p] = y
+                if p < self.pool.n[b, e]:
+                    ident = self.pool.pid[b, e, p]
+                    y, alive, clamped = self.walker.move(x[b, e, p], e, ident[0], ident[1], step)
+                    x[b, e, p] = y
                     if clamped:  # rare: an atomic for every particle would cost more than the step
                         self.clamped[None] += clamped
+                    self.pool.keep[e, p] = ti.u8(alive)
                     if not alive:
-                        self.pid[e, p][1] = ti.u32(DEAD)
                         self.inflow[None] -= 1
         else:  # identity = slot: the G particles of a counter group walk together
             for e, k in ti.ndrange(self.ensemble, -(-self.capacity // G)):
-                n = self.n_alive[e]
+                n = self.pool.n[b, e]
                 if G * k < n:
                     bits = self.walker.bits(e, ti.u32(G * k), ti.u32(0), step)
                     for g in ti.static(range(G)):
                         p = G * k + g
                         if p < n:
-                            y, alive, clamped = self.walker.step_with(self.x[e, p], bits, g)
-                            self.x[e, p] = y
+                            y, alive, clamped = self.walker.step_with(x[b, e, p], bits, g)
+                            x[b, e, p] = y
                             if clamped:
                                 self.clamped[None] += clamped
 
     @ti.kernel
-    def _exchange(self, step: ti.u32):
-        """Dirichlet sides: drop absorbed particles (keeping order) and inject reservoir walkers."""
+    def _inject(self, b: ti.i32, step: ti.u32):
+        """Dirichlet sides: append to buffer ``b`` the reservoir walkers of step ``step`` that walk in."""
         key = ti.math.uvec2(self.key[0], self.key[1])
         K = ti.static(int(self.grid.reservoir_ppc_max) + 1)  # most particles a reservoir cell can hold
         for e in range(self.ensemble):
-            j = 0
-            for p in range(self.n_alive[e]):
-                if self.pid[e, p][1] != ti.u32(DEAD):
-                    self.x[e, j] = self.x[e, p]
-                    self.pid[e, j] = self.pid[e, p]
-                    j += 1
+            j = self.pool.n[b, e]
             for a in ti.static(range(self.dim)):
                 for side in ti.static(range(2)):
                     if ti.static(self.grid.boundary[a][side] == DIRICHLET):
@@ -314,8 +315,8 @@ class ParticleSolver(Solver):
                             C = G
                             C[a] = -1 if side == 0 else self.n[a]
                             lin = ti.u32(0)
-                            for b in ti.static(range(self.dim)):
-                                lin = lin * ti.u32(layer[b]) + ti.u32(G[b])
+                            for c in ti.static(range(self.dim)):
+                                lin = lin * ti.u32(layer[c]) + ti.u32(G[c])
                             lin += ti.u32(tag)
                             bits = rng.philox4x32(ti.math.uvec4(lin, step, self.walker.member(e), ti.u32(rng.SAMPLE_COUNT)), key)
                             m = self.walker.how_many(lam, bits[0])
@@ -327,22 +328,22 @@ class ParticleSolver(Solver):
                                 self.clamped[None] += clamped
                                 if alive:
                                     if j < self.capacity:
-                                        self.x[e, j] = y
-                                        self.pid[e, j] = ti.math.uvec2(id0, step + 1)
+                                        self.pool.x[b, e, j] = y
+                                        self.pool.pid[b, e, j] = ti.math.uvec2(id0, step + 1)
                                         j += 1
                                         self.inflow[None] += 1
                                     else:
                                         self.overflow[None] = 1
-            self.n_alive[e] = j
+            self.pool.n[b, e] = j
 
     @ti.kernel
-    def _bin(self):
+    def _bin(self, b: ti.i32):
         for J in ti.grouped(self.count):
             self.count[J] = 0
         for e, p in ti.ndrange(self.ensemble, self.capacity):
-            if p < self.n_alive[e]:
+            if p < self.pool.n[b, e]:
                 J = ti.Vector.zero(ti.i32, self.dim + 1)
                 J[0] = e
                 for a in ti.static(range(self.dim)):
-                    J[a + 1] = cell_of(self.x[e, p][a], self.real(self.grid.dx[a]), self.n[a])
+                    J[a + 1] = cell_of(self.pool.x[b, e, p][a], self.real(self.grid.dx[a]), self.n[a])
                 self.count[J] += 1

@@ -42,7 +42,8 @@ def tag(ppc: np.ndarray, threshold: float) -> np.ndarray:
 
 def grow(tags: np.ndarray, width: int, periodic: tuple[bool | None, ...]) -> np.ndarray:
     """Tags dilated by ``width`` cells in Chebyshev distance; periodic axes wrap, others clip,
-    axes marked None (an ensemble axis) are left alone."""
+    axes marked None (an ensemble axis) are left alone. (The NumPy form, with ``np.roll``, of the
+    face rule the kernels take from ``grid.across``: it dilates whole masks on the host.)"""
     out = tags.copy()
     for a, wrap in enumerate(periodic):
         if wrap is None:
@@ -148,11 +149,19 @@ def mask(boxes: list[Box], shape: tuple[int, ...]) -> np.ndarray:
     return out
 
 
-def region(ppc: np.ndarray, p: RegridParams, periodic: tuple[bool, ...]) -> tuple[list[Box], np.ndarray]:
-    """Boxes and cell mask of the particle region for one member whose SPDE holds ``ppc``."""
+def region(ppc: np.ndarray, p: RegridParams, periodic: tuple[bool, ...],
+           cache: dict | None = None) -> tuple[list[Box], np.ndarray, int]:
+    """Boxes, cell mask and number of tagged cells (after the buffer) of the particle region for
+    one member whose SPDE holds ``ppc``. ``cache`` (a dict kept across members) clusters each
+    tag pattern once: members with the same tags get the same boxes."""
     tags = grow(tag(ppc, p.threshold), p.buffer, periodic)
-    boxes = cluster(tags, p)
-    return boxes, mask(boxes, ppc.shape)
+    key = tags.tobytes()
+    boxes = cache.get(key) if cache is not None else None
+    if boxes is None:
+        boxes = cluster(tags, p)
+        if cache is not None:
+            cache[key] = boxes
+    return boxes, mask(boxes, ppc.shape), int(tags.sum())
 
 
 def efficiency(boxes: list[Box], tags: np.ndarray) -> float:

@@ -1,0 +1,198 @@
+"""Particles the hybrid samples from the SPDE (paper §3): the ghost ring of every particle
+(sub-)step, and the cells a regrid newly covers."""
+
+import math
+
+import taichi as ti
+
+from . import rng
+from .config import HYBRID_STEP_LIMIT, ID_BITS_MIN
+from .grid import DIRICHLET, across, cell_of
+from .particles import Walker
+from .region import Region
+
+REGRID_BIRTH = HYBRID_STEP_LIMIT  # flag in the birth word of particles sampled at a regrid (ghosts: step + 1)
+TOO_MANY = 2**31 - 1  # `need` when a cell asked for more particles than an id can number
+
+
+@ti.data_oriented
+class Sampler:
+    r"""Sampling of particles from a density, keyed on the cell so that the result does not depend
+    on the thread order or the box layout.
+
+    Cell ``C`` (padded index ``C + 1``, flattened to ``lin``) gets ``ℓ`` particles plus one with
+    probability ``α``, ``ℓ + α = max(λ, 0)`` (paper §3), λ its expected content; particle ``k``
+    gets the identity ``id0 = lin · 2^id_bits + k`` and a birth word (``step + 1`` for ghosts,
+    ``step | REGRID_BIRTH`` at a regrid), and is placed by :meth:`Walker.in_cell` with the
+    linear profile of :meth:`tilt`.
+    """
+
+    def __init__(self, spde, region: Region, walker: Walker, seed: int, profile: str, substeps: int):
+        self.spde, self.region, self.walker, self.profile, self.substeps = spde, region, walker, profile, substeps
+        self.grid, self.dim, self.n, self.real = spde.grid, spde.dim, spde.n, spde.real
+        self.key = rng.seed_key(seed)
+        self.id_bits = 32 - math.ceil(math.log2(math.prod(region.padded)))  # bits for the index in the cell
+        assert self.id_bits >= ID_BITS_MIN, "config.make_scene refuses such grids"
+        assert profile != "mean" or spde.track_mean, "ghost_profile 'mean' reads the SPDE's q̄"
+        if substeps > 1:
+            self.q_old = ti.field(spde.real, shape=(spde.ensemble, *self.n))  # q^n while q holds q^{n+1,*} [1/volume]
+        self.need = ti.field(ti.i32, shape=())  # most slots a member asked for (TOO_MANY: a cell overflowed)
+        self.created = ti.field(ti.i64, shape=())  # particles sampled at the last regrid
+        self.removed = ti.field(ti.f64, shape=())  # SPDE content Σ q V_c those cells held before
+
+    def check_need(self) -> int:
+        """The most slots a member asked for in the last fill; raises if a cell overflowed its ids."""
+        need = self.need[None]
+        if need == TOO_MANY:
+            raise OverflowError(
+                f"a ghost or newly covered cell holds more than {2**self.id_bits - 1} particles: "
+                "lower the density or use fewer cells")
+        return int(need)
+
+    # -- identities -----------------------------------------------------------------------
+    @ti.func
+    def origin(self, id0):
+        """The birth cell of a particle (it may be a reservoir cell, one layer outside)."""
+        lin = ti.cast(id0 >> ti.u32(self.id_bits), ti.i32)
+        C = ti.Vector.zero(ti.i32, self.dim)
+        for b in ti.static(range(self.dim)):
+            a = ti.static(self.dim - 1 - b)
+            C[a] = lin % self.region.padded[a] - 1
+            lin //= self.region.padded[a]
+        return C
+
+    @ti.func
+    def index(self, id0):
+        """The index of a particle among those sampled with it in its birth cell."""
+        return id0 & ti.u32((1 << self.id_bits) - 1)
+
+    # -- placement ------------------------------------------------------------------------
+    @ti.func
+    def _profile(self, J):
+        """The density the tilts are read from at member-first index ``J``: q̄ (``mean``) or q."""
+        v = self.real(0.0)
+        if ti.static(self.profile == "mean"):
+            J0 = J
+            J0[0] = 0
+            v = self.spde.qbar[J0]
+        else:
+            v = self.spde.q[J]
+        return v
+
+    @ti.func
+    def tilt(self, e, C):
+        r"""Linear profile of cell ``C`` for :meth:`Walker.in_cell`: ``b_a = (p_{C+e_a} − p_{C−e_a}) / (2 p_C)``
+        clipped to [−2, 2] so the density stays ≥ 0: the centred slope of the profile density ``p``
+        (the neighbours :func:`grid.across` each face: a Neumann side mirrors, a Dirichlet side
+        sees its reservoir). Zero with ``ghost_profile = 'uniform'``.
+
+        Which ``p`` (``ghost_profile``), measured on the paper's void case (benchmarks/RESULTS.md):
+
+        - ``uniform`` (paper §3): ``b = 0``. Near a density gradient the particles of a ghost cell do
+          not lie uniformly; uniform placement puts too many next to the low side and biases the
+          mean of the cells on both sides of the interface (6–12 standard errors).
+        - ``linear``: ``p = q`` of the member. The slope of a ghost cell next to the region reads the
+          covered neighbour's particle count, so the inflow grows with the region's own
+          fluctuation: positive feedback, variance of the first covered cells 8 % too high.
+        - ``mean`` (default): ``p = q̄``, the deterministic scheme (eq. 10) advanced alongside, the
+          same for every member: the profile of the ensemble mean, with no feedback from any
+          member's fluctuation. The count still comes from the member's own ``q``.
+        """
+        b = ti.Vector.zero(self.real, self.dim)
+        if ti.static(self.profile != "uniform"):
+            J = self.region.member(e, C)
+            qc = self._profile(J)
+            for a in ti.static(range(self.dim)):
+                q = ti.Vector([qc, qc])  # beyond a Neumann side: the mirror image
+                for side in ti.static(range(2)):
+                    K, inside = across(self.grid, J, a, side)
+                    if inside:
+                        q[side] = self._profile(K)
+                    elif ti.static(self.grid.boundary[a][side] == DIRICHLET):
+                        q[side] = self.real(self.grid.reservoir[a][side])
+                if qc > 0:
+                    b[a] = ti.math.clamp((q[1] - q[0]) / (self.real(2.0) * qc), self.real(-2.0), self.real(2.0))
+        return b
+
+    @ti.func
+    def sample(self, pool: ti.template(), buf, e, C, lam, step, birth, tilt_on):
+        """Append ℓ particles plus one with probability α (``lam = ℓ + α``) to cell ``C`` (paper §3),
+        placed by :meth:`tilt` (uniform where ``tilt_on`` is 0), in buffer ``buf`` of member ``e``;
+        returns how many."""
+        lin = ti.u32(0)
+        for a in ti.static(range(self.dim)):
+            lin = lin * ti.u32(self.region.padded[a]) + ti.u32(C[a] + 1)
+        key = ti.math.uvec2(self.key[0], self.key[1])
+        bits = rng.philox4x32(ti.math.uvec4(lin, ti.u32(step), self.walker.member(e), ti.u32(rng.SAMPLE_COUNT)), key)
+        m = self.walker.how_many(ti.max(lam, 0.0), bits[0])
+        if m >= (1 << self.id_bits):
+            ti.atomic_max(self.need[None], TOO_MANY)
+            m = 0
+        base = ti.atomic_add(pool.n[buf, e], m)
+        ti.atomic_max(self.need[None], base + m)
+        tilt = ti.Vector.zero(self.real, self.dim)
+        if m > 0 and tilt_on and self.region.inside(C):
+            tilt = self.tilt(e, C)
+        for k in range(m):
+            if base + k < pool.capacity:
+                id0 = (lin << ti.u32(self.id_bits)) | ti.u32(k)
+                r = rng.philox4x32(ti.math.uvec4(id0, ti.u32(step), self.walker.member(e), ti.u32(rng.SAMPLE_POSITION)), key)
+                pool.x[buf, e, base + k] = self.walker.in_cell(C, r, tilt)
+                pool.pid[buf, e, base + k] = ti.math.uvec2(id0, ti.u32(birth))
+        return m
+
+    # -- kernels --------------------------------------------------------------------------
+    @ti.kernel
+    def fill(self, pool: ti.template(), cur: ti.i32, step: ti.i32, n_ring: ti.i32, w: ti.f64, tilt_on: ti.i32):
+        """Step 1 of the hybrid: ghost particles appended after the real ones, from
+        ``(1 − w) q^n + w q^{n+1,*}`` (``w = s/k`` at particle sub-step s of k; q^n itself when
+        k = 1) or the Dirichlet reservoir."""
+        vol = ti.static(self.grid.cell_volume)
+        self.need[None] = 0
+        for i in range(n_ring):
+            J, inside = self.region.ring_cell(i)
+            C = ti.Vector([J[a + 1] for a in ti.static(range(self.dim))])
+            lam = 0.0
+            if inside:
+                lam = ti.cast(self.spde.q[J], ti.f64)
+                if ti.static(self.substeps > 1):
+                    lam = (1.0 - w) * ti.cast(self.q_old[J], ti.f64) + w * lam
+                lam *= vol
+            else:
+                for a in ti.static(range(self.dim)):
+                    if C[a] < 0:
+                        lam = self.grid.reservoir[a][0] * vol
+                    elif C[a] >= self.n[a]:
+                        lam = self.grid.reservoir[a][1] * vol
+            self.sample(pool, cur, J[0], C, lam, step, step + 1, tilt_on)
+
+    @ti.kernel
+    def cover(self, pool: ti.template(), cur: ti.i32, step: ti.i32, tilt_on: ti.i32, scratch: ti.template()):
+        """Move to the region in ``fresh``: sample the newly covered cells (birth ``step |
+        REGRID_BIRTH``), whose q becomes N / V_c, and mark to keep the particles still covered.
+        ``scratch`` (i32 per cell, zero) holds the counts until every tilt has read q."""
+        vol = ti.static(self.grid.cell_volume)
+        covered, fresh = ti.static(self.region.covered, self.region.fresh)
+        self.need[None] = 0
+        self.created[None] = 0
+        self.removed[None] = 0.0
+        for J in ti.grouped(covered):
+            if fresh[J] and not covered[J]:
+                C = ti.Vector([J[a + 1] for a in ti.static(range(self.dim))])
+                lam = ti.cast(self.spde.q[J], ti.f64) * vol
+                m = self.sample(pool, cur, J[0], C, lam, step, step | REGRID_BIRTH, tilt_on)
+                self.created[None] += m
+                self.removed[None] += lam
+                scratch[J] = m
+        for J in ti.grouped(covered):
+            if fresh[J] and not covered[J]:
+                self.spde.q[J] = self.real(ti.cast(scratch[J], ti.f64) / vol)
+                scratch[J] = 0
+            covered[J] = fresh[J]
+        for e, p in ti.ndrange(self.spde.ensemble, pool.capacity):
+            if p < pool.n[cur, e]:
+                D = ti.Vector.zero(ti.i32, self.dim + 1)
+                D[0] = e
+                for a in ti.static(range(self.dim)):
+                    D[a + 1] = cell_of(pool.x[cur, e, p][a], self.real(self.grid.dx[a]), self.n[a])
+                pool.keep[e, p] = covered[D]

@@ -1,0 +1,212 @@
+"""The hybrid's particle region on the device (paper §3.2): covered mask, ghost ring, the flat
+lists of ring and covered cells, the on-demand low mask and each member's boxes.
+
+The boxes come from :mod:`regrid` (host NumPy); everything downstream reads the cell mask, so
+nothing depends on how the region was cut into boxes.
+"""
+
+import itertools
+import math
+
+import numpy as np
+import taichi as ti
+
+from . import regrid
+from .grid import DIRICHLET, PERIODIC, Grid, across
+from .pool import BLOCK
+
+
+@ti.data_oriented
+class Region:
+    """The particle region of every member: a cell mask, its ghost ring and their cell lists.
+
+    The ghost ring holds the cells outside the region within Chebyshev distance 1 of it (across
+    periodic sides) and the Dirichlet reservoir cells beyond covered boundary cells; it lives on
+    the padded grid (one ghost layer per side, padded index = cell index + 1). The lists hold
+    flat (C-order) indices, ascending, so a loop over them visits cells in a fixed order.
+    """
+
+    def __init__(self, grid: Grid, ensemble: int, params: regrid.RegridParams):
+        self.grid, self.ensemble, self.params = grid, ensemble, params
+        self.dim, self.n = grid.dim, grid.cells
+        self.padded = tuple(m + 2 for m in self.n)  # the grid plus one layer of ghost cells per side
+        self.periodic = tuple(lo == PERIODIC for lo, _ in grid.boundary)
+        self.offsets = list(itertools.product((-1, 0, 1), repeat=self.dim))  # the 3^d Chebyshev neighbours
+        E, n = ensemble, self.n
+        self.covered = ti.field(ti.u8, shape=(E, *n))  # 1 where the cell is in the particle region
+        self.fresh = ti.field(ti.u8, shape=(E, *n))  # the region being regridded to
+        self.low = ti.field(ti.u8, shape=(E, *n))  # 1: uncovered, and too low to stay so (mark_low)
+        self.ring = ti.field(ti.u8, shape=(E, *self.padded))  # 1 on ghost cells (padded index = cell + 1)
+        self.ring_list = ti.field(ti.i32, shape=E * math.prod(self.padded))  # flat indices of ghost cells
+        self.cover_list = ti.field(ti.i32, shape=E * math.prod(n))  # flat indices of covered cells
+        self.block = ti.field(ti.i32, shape=-(-self.ring_list.shape[0] // BLOCK))  # list entries per block
+        self.listed = ti.field(ti.i32, shape=())  # length of the list built last
+        self.n_ring, self.n_cover = 0, 0  # lengths of the two lists
+        self.boxes: list[list[regrid.Box]] = [[] for _ in range(E)]  # each member's region
+
+    # -- host -----------------------------------------------------------------------------
+    def mask(self) -> np.ndarray:
+        """The region of every member, ``(ensemble, *cells)`` booleans."""
+        return self.covered.to_numpy().astype(bool)
+
+    def plan(self, ppc: np.ndarray) -> tuple[np.ndarray, int]:
+        """A new region for every member from its SPDE content ``ppc`` (:func:`regrid.region`;
+        members with the same tags are clustered once): the masks, and how many cells were tagged.
+        The boxes are kept."""
+        masks = np.zeros(ppc.shape, dtype=bool)
+        cache: dict[bytes, list] = {}
+        tagged = 0
+        for e in range(self.ensemble):
+            self.boxes[e], masks[e], t = regrid.region(ppc[e], self.params, self.periodic, cache)
+            tagged += t
+        return masks, tagged
+
+    def plan_extension(self) -> tuple[np.ndarray, int]:
+        """The region plus the cells :meth:`mark_low` marked, grown by the buffer and clustered:
+        the masks, and how many members grew. The new boxes are added to the kept ones."""
+        masks = self.mask()
+        low = self.low.to_numpy().astype(bool)
+        add = regrid.grow(low, self.params.buffer, (None, *self.periodic))
+        members = np.flatnonzero(low.reshape(self.ensemble, -1).any(axis=1))
+        for e in members:
+            boxes = regrid.cluster(add[e], self.params)
+            self.boxes[e] = list(self.boxes[e]) + boxes
+            masks[e] |= regrid.mask(boxes, self.n)
+        return masks, len(members)
+
+    def near(self, masks: np.ndarray) -> np.ndarray:
+        """Cells that can hold particles while the region moves to ``masks``: the old region, the
+        new one and its ghost ring."""
+        return regrid.grow(masks, 1, (None, *self.periodic)) | self.mask()
+
+    def lists(self) -> None:
+        """Ghost ring and the flat lists of ring and covered cells, from ``covered``."""
+        self._ring()
+        self.n_ring = self._list(self.ring, self.ring_list)
+        self.n_cover = self._list(self.covered, self.cover_list)
+
+    def state(self) -> dict[str, np.ndarray]:
+        boxes = [(e, *lo, *hi) for e, bs in enumerate(self.boxes) for lo, hi in bs]
+        return {"covered": self.covered.to_numpy(),
+                "boxes": np.array(boxes, dtype=np.int64).reshape(-1, 1 + 2 * self.dim)}
+
+    def load_state(self, st: dict[str, np.ndarray]) -> None:
+        self.covered.from_numpy(st["covered"])
+        self.lists()
+        self.boxes = [[] for _ in range(self.ensemble)]
+        d = self.dim
+        for row in st["boxes"]:
+            self.boxes[row[0]].append((tuple(int(v) for v in row[1:1 + d]), tuple(int(v) for v in row[1 + d:])))
+
+    # -- device ---------------------------------------------------------------------------
+    @ti.func
+    def member(self, e, C):
+        """The member-first index ``(e, *C)``."""
+        J = ti.Vector.zero(ti.i32, self.dim + 1)
+        J[0] = e
+        for a in ti.static(range(self.dim)):
+            J[a + 1] = C[a]
+        return J
+
+    @ti.func
+    def unflatten(self, i, shape: ti.template()):
+        """The index vector of flat (C-order) index ``i`` in an array of ``shape``."""
+        d = ti.static(len(shape))
+        J = ti.Vector.zero(ti.i32, d)
+        for b in ti.static(range(d)):
+            a = ti.static(d - 1 - b)
+            J[a] = i % shape[a]
+            i //= shape[a]
+        return J
+
+    @ti.func
+    def inside(self, C) -> bool:
+        """Whether cell ``C`` (no member index) is a grid cell."""
+        ok = True
+        for a in ti.static(range(self.dim)):
+            ok = ok and 0 <= C[a] < self.n[a]
+        return ok
+
+    @ti.func
+    def covered_cell(self, i):
+        """The member-first index of entry ``i`` of ``cover_list``."""
+        return self.unflatten(self.cover_list[i], ti.static(self.covered.shape))
+
+    @ti.func
+    def ring_cell(self, i):
+        """The member-first index of entry ``i`` of ``ring_list``, and whether it is a grid cell."""
+        P = self.unflatten(self.ring_list[i], ti.static(self.ring.shape))
+        J = P - 1
+        J[0] = P[0]
+        return J, self.inside(ti.Vector([J[a + 1] for a in ti.static(range(self.dim))]))
+
+    @ti.kernel
+    def mark_low(self, q: ti.template(), threshold: ti.f64) -> ti.i32:
+        """Mark in ``low`` the uncovered cells whose density ``q`` holds fewer than ``threshold``
+        particles (or is negative), which the hybrid's ``extend`` covers; return how many."""
+        vol = ti.static(self.grid.cell_volume)
+        total = 0
+        for J in ti.grouped(self.covered):
+            low = 0
+            if not self.covered[J] and ti.cast(q[J], ti.f64) * vol < threshold:
+                low = 1
+            self.low[J] = ti.u8(low)
+            total += low
+        return total
+
+    @ti.kernel
+    def _ring(self):
+        """Mark the ghost cells: not covered, within Chebyshev distance 1 of a covered cell (each
+        neighbour reached :func:`grid.across` one face per axis); outside the grid only beyond a
+        Dirichlet side, and not beyond two sides at once."""
+        for I in ti.grouped(self.ring):
+            C = ti.Vector([I[a + 1] - 1 for a in ti.static(range(self.dim))])
+            outside = 0
+            ok = True
+            for a in ti.static(range(self.dim)):
+                lo, hi = ti.static(self.grid.boundary[a])
+                if C[a] < 0:
+                    outside += 1
+                    if ti.static(lo != DIRICHLET):
+                        ok = False
+                elif C[a] >= self.n[a]:
+                    outside += 1
+                    if ti.static(hi != DIRICHLET):
+                        ok = False
+            J = self.member(I[0], C)
+            r = 0
+            if ok and outside <= 1 and not (outside == 0 and self.covered[J]):
+                for off in ti.static(self.offsets):
+                    N = J
+                    for a in ti.static(range(self.dim)):
+                        if ti.static(off[a] != 0):
+                            N, _ = across(self.grid, N, a, ti.static((off[a] + 1) // 2))
+                    if self.inside(ti.Vector([N[a + 1] for a in ti.static(range(self.dim))])) and self.covered[N]:
+                        r = 1
+            self.ring[I] = ti.u8(r)
+
+    @ti.kernel
+    def _list(self, flags: ti.template(), out: ti.template()) -> ti.i32:
+        """Write the flat indices of the nonzero ``flags``, ascending, to the front of ``out``
+        (per-block counts, an exclusive scan over blocks, a scatter); return how many."""
+        size = ti.static(math.prod(flags.shape))
+        blocks = ti.static(-(-size // BLOCK))
+        for k in range(blocks):
+            c = 0
+            for i in range(k * BLOCK, ti.min(k * BLOCK + BLOCK, size)):
+                c += ti.cast(flags[self.unflatten(i, ti.static(flags.shape))] != 0, ti.i32)
+            self.block[k] = c
+        for _ in range(1):  # the scan, serial
+            total = 0
+            for k in range(blocks):
+                c = self.block[k]
+                self.block[k] = total
+                total += c
+            self.listed[None] = total
+        for k in range(blocks):
+            j = self.block[k]
+            for i in range(k * BLOCK, ti.min(k * BLOCK + BLOCK, size)):
+                if flags[self.unflatten(i, ti.static(flags.shape))] != 0:
+                    out[j] = i
+                    j += 1
+        return self.listed[None]
