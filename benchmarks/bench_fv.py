@@ -35,7 +35,7 @@ def periodic_grid(cells):
 
 def solver_rate(cells, ensemble, real, gaussian, reps):
     grid = periodic_grid(cells)
-    s = SPDESolver(grid, 0.1 * min(grid.dx) ** 2, ensemble, 1, real, gaussian)
+    s = SPDESolver(grid, 0.1 * min(grid.dx) ** 2, ensemble, rng.seed_key(1), real, gaussian)
     s.initialize(np.full(cells, 30.0))
     sec = timed(lambda n=0: s.step(n), reps)
     return ensemble * np.prod(cells) / sec

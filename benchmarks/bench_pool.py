@@ -24,6 +24,7 @@ import ti_dk
 from ti_dk import load_scene
 from ti_dk.grid import Grid
 from ti_dk.particles import Walker
+from ti_dk.rng import seed_key
 
 BLK = 8
 
@@ -65,7 +66,7 @@ class SparsePool:
 
 
 def run_sparse(grid, dt, cells, lo, hi, ppc, reps):
-    walker = Walker(grid, dt, ti.f64, 1)
+    walker = Walker(grid, dt, ti.f64, seed_key(1))
     pool = SparsePool(cells, 64 * BLK * BLK * ppc)
     (a, na), (b, nb) = pool.bufs
     h = 1.0 / cells

@@ -6,6 +6,7 @@ import taichi as ti
 
 from ti_dk import load_scene, theory
 from ti_dk.fv import SPDESolver
+from ti_dk.rng import seed_key
 from ti_dk.grid import Grid
 
 from .helpers import digest_on_threads
@@ -20,7 +21,7 @@ def _grid(cells, lengths=None, boundary="periodic", reservoir_ppc=0.0):
 def _count_variance(cells, lengths, ppc, C, steps, members, gaussian, real=ti.f64):
     grid = _grid(cells, lengths)
     dt = C * min(grid.dx) ** 2
-    s = SPDESolver(grid, dt, members, seed=11, real=real, gaussian=gaussian)
+    s = SPDESolver(grid, dt, members, key=seed_key(11), real=real, gaussian=gaussian)
     s.initialize(np.full(cells, float(ppc)))
     for n in range(steps):
         s.step(n)
@@ -58,7 +59,7 @@ def test_fv_at_100_ppc_agrees_with_linear_theory():
 @pytest.mark.parametrize("gaussian", [False, True], ids=["fv", "gaussian"])
 def test_mass_conserved_to_roundoff(cells, boundary, gaussian):
     grid = _grid(cells, boundary=boundary)
-    s = SPDESolver(grid, 0.1 * min(grid.dx) ** 2, 4, seed=3, real=ti.f64, gaussian=gaussian)
+    s = SPDESolver(grid, 0.1 * min(grid.dx) ** 2, 4, key=seed_key(3), real=ti.f64, gaussian=gaussian)
     ppc = np.random.default_rng(0).uniform(0.0, 3.0, size=cells)  # low densities: negative cells occur
     s.initialize(ppc)
     total0 = ppc.sum() * 4
@@ -72,7 +73,7 @@ def test_mass_conserved_to_roundoff(cells, boundary, gaussian):
 
 def test_dirichlet_balance_equals_boundary_fluxes():
     grid = _grid((40,), boundary=[["dirichlet", "neumann"]], reservoir_ppc=[[8.0, 0.0]])
-    s = SPDESolver(grid, 0.1 * grid.dx[0] ** 2, 8, seed=5, real=ti.f64)
+    s = SPDESolver(grid, 0.1 * grid.dx[0] ** 2, 8, key=seed_key(5), real=ti.f64)
     s.initialize(np.full(40, 2.0))
     mass, inflow = [2.0 * 40 * 8], []
     for n in range(300):
@@ -88,7 +89,7 @@ def test_noise_depends_on_seed_and_member():
     grid = _grid((30,))
     out = []
     for seed in (1, 1, 2):
-        s = SPDESolver(grid, 0.1 * grid.dx[0] ** 2, 2, seed=seed, real=ti.f64)
+        s = SPDESolver(grid, 0.1 * grid.dx[0] ** 2, 2, key=seed_key(seed), real=ti.f64)
         s.initialize(np.full(30, 10.0))
         s.step(0)
         out.append(s.density())
@@ -102,13 +103,14 @@ import hashlib, sys
 import numpy as np
 import ti_dk, taichi as ti
 from ti_dk.fv import SPDESolver
+from ti_dk.rng import seed_key
 from ti_dk.grid import Grid
 ti_dk.init("cpu", int(sys.argv[1]))
 h = hashlib.sha256()
 for cells, E, real in (((100,), 64, ti.f64), ((40, 30), 2, ti.f32), ((10, 9, 8), 2, ti.f64)):
     grid = Grid(cells, (1.0,) * len(cells), ((2, 2),) + ((0, 0),) * (len(cells) - 1),
                 ((7.0, 1.0),) + ((0.0, 0.0),) * (len(cells) - 1))
-    s = SPDESolver(grid, 0.1 * min(grid.dx) ** 2, E, seed=(1 << 40) + 9, real=real)
+    s = SPDESolver(grid, 0.1 * min(grid.dx) ** 2, E, key=seed_key((1 << 40) + 9), real=real)
     s.initialize(np.full(cells, 3.0))
     for n in range(30):
         s.step(n)
@@ -127,7 +129,7 @@ def test_same_seed_same_bits_on_one_and_two_threads():
 def test_fused_1d_step_equals_the_three_kernel_step(boundary):
     """The per-member 1D step and the flux/update/diagnose kernels the hybrid calls give the same bits."""
     grid = _grid((37,), boundary=boundary, reservoir_ppc=[[3.0, 5.0]] if boundary != "periodic" else 0.0)
-    a, b = (SPDESolver(grid, 0.1 * grid.dx[0] ** 2, 5, seed=4, real=ti.f64) for _ in range(2))
+    a, b = (SPDESolver(grid, 0.1 * grid.dx[0] ** 2, 5, key=seed_key(4), real=ti.f64) for _ in range(2))
     ppc = np.random.default_rng(1).uniform(0.0, 4.0, size=37)
     a.initialize(ppc)
     b.initialize(ppc)

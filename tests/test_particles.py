@@ -7,6 +7,7 @@ import taichi as ti
 from ti_dk import load_scene, run, theory
 from ti_dk.grid import Grid
 from ti_dk.particles import ParticleSolver
+from ti_dk.rng import seed_key
 
 from .helpers import KEYS, as_counts, check_moments, digest_on_threads
 
@@ -59,7 +60,7 @@ def test_walls_and_reservoirs(boundary):
                        ppc=2, C=0.25, ensemble=200)
     grid = Grid.from_scene(scene)
     ppc = np.full(20, 2.5)
-    s = ParticleSolver(grid, scene.dt, scene.method.ensemble, 4, ti.f64, ParticleSolver.capacity_for(grid, ppc))
+    s = ParticleSolver(grid, scene.dt, scene.method.ensemble, seed_key(4), ti.f64, ParticleSolver.capacity_for(grid, ppc))
     s.initialize(ppc)
     mass = [s.diagnostics()["mass"]]
     inflow, clamped = [], 0
@@ -88,13 +89,14 @@ import numpy as np
 import ti_dk, taichi as ti
 from ti_dk.grid import Grid
 from ti_dk.particles import ParticleSolver
+from ti_dk.rng import seed_key
 ti_dk.init("cpu", int(sys.argv[1]))
 h = hashlib.sha256()
 for cells, E, bc in (((50,), 16, ((0, 0),)), ((20, 16), 2, ((2, 1), (0, 0))), ((8, 8, 8), 2, ((0, 0),) * 3)):
     res = tuple((6.0 * c[0], 0.0) for c in [cells] * len(cells)) if bc[0][0] == 2 else ((0.0, 0.0),) * len(cells)
     grid = Grid(cells, (1.0,) * len(cells), bc, res)
     ppc = np.full(cells, 3.5)
-    s = ParticleSolver(grid, 0.1 * min(grid.dx) ** 2, E, seed=(1 << 40) + 9, real=ti.f64,
+    s = ParticleSolver(grid, 0.1 * min(grid.dx) ** 2, E, key=seed_key((1 << 40) + 9), real=ti.f64,
                        capacity=ParticleSolver.capacity_for(grid, ppc))
     s.initialize(ppc)
     for n in range(30):

@@ -36,7 +36,7 @@ class SPDESolver(Solver):
     cell at the reservoir density (for q and for q̄).
     """
 
-    def __init__(self, grid: Grid, dt: float, ensemble: int, seed: int, real=ti.f64, gaussian: bool = False,
+    def __init__(self, grid: Grid, dt: float, ensemble: int, key: tuple[int, int], real=ti.f64, gaussian: bool = False,
                  member0: int = 0, track_mean: bool = False):
         self.grid, self.dt, self.ensemble, self.real, self.gaussian = grid, dt, ensemble, real, gaussian
         # q̄ (eq. 10) is advanced for the Gaussian scheme's amplitude, or for whoever reads it (the hybrid's ghosts)
@@ -44,7 +44,7 @@ class SPDESolver(Solver):
         self.member0 = member0  # global index of member 0: a member's noise depends on it, not on the chunking
         self.dim = grid.dim
         self.n = grid.cells
-        self.key = rng.seed_key(seed)
+        self.key = key  # the Philox key of the run (rng.seed_key of its seed)
         rng.prepare()
         self.group = max(1, 4 // self.dim)  # cells along the last axis sharing one Philox counter
         # counter groups per member: the last axis of the padded face grid cut into groups of `group`

@@ -27,10 +27,10 @@ class Sampler:
     linear profile of :meth:`tilt`.
     """
 
-    def __init__(self, spde, region: Region, walker: Walker, seed: int, profile: str, substeps: int):
+    def __init__(self, spde, region: Region, walker: Walker, profile: str, substeps: int):
         self.spde, self.region, self.walker, self.profile, self.substeps = spde, region, walker, profile, substeps
         self.grid, self.dim, self.n, self.real = spde.grid, spde.dim, spde.n, spde.real
-        self.key = rng.seed_key(seed)
+        self.key = spde.key  # the run's Philox key; sampling has counters of its own (rng.SAMPLE_*)
         self.id_bits = 32 - math.ceil(math.log2(math.prod(region.padded)))  # bits for the index in the cell
         assert self.id_bits >= ID_BITS_MIN, "config.make_scene refuses such grids"
         assert profile != "mean" or spde.track_mean, "ghost_profile 'mean' reads the SPDE's q̄"

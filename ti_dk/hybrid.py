@@ -226,16 +226,16 @@ class HybridSolver(RegionSolver):
     the piecewise-constant initial condition, so those particles lie uniformly in their cells.
     """
 
-    def __init__(self, spde: SPDESolver, params: regrid.RegridParams, regrid_interval: int, seed: int,
+    def __init__(self, spde: SPDESolver, params: regrid.RegridParams, regrid_interval: int,
                  ghost_profile: str = "mean", substeps: int = 1):
         grid = spde.grid
         self.profile, self.substeps = ghost_profile, substeps
         self.spde, self.params, self.regrid_interval = spde, params, regrid_interval
         self.grid, self.dt, self.ensemble, self.real = grid, spde.dt, spde.ensemble, spde.real
         self.dim, self.n = grid.dim, grid.cells
-        self.walker = Walker(grid, spde.dt / substeps, spde.real, seed, spde.member0)  # one particle sub-step
+        self.walker = Walker(grid, spde.dt / substeps, spde.real, spde.key, spde.member0)  # one particle sub-step
         self.regions = Region(grid, self.ensemble, params)
-        self.sampler = Sampler(spde, self.regions, self.walker, seed, ghost_profile, substeps)
+        self.sampler = Sampler(spde, self.regions, self.walker, ghost_profile, substeps)
         self.coupling = Coupling(spde, self.regions, self.sampler, self.walker)
         self.pool = pool.ParticlePool(self.ensemble, 1, self.dim, self.real)
         self.cur = 0  # the pool buffer holding the particles between steps

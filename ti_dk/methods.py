@@ -6,6 +6,7 @@ from collections.abc import Callable
 import numpy as np
 import taichi as ti
 
+from . import rng
 from .config import Scene
 from .fv import SPDESolver
 from .grid import Grid
@@ -21,7 +22,8 @@ def make_solver(scene: Scene, ppc: np.ndarray, member0: int = 0) -> Solver:
     members are members ``member0 …`` of the whole ensemble (chunks of a distributed run)."""
     grid = Grid.from_scene(scene)
     real = ti.f32 if scene.method.precision == "f32" else ti.f64
-    common = dict(grid=grid, dt=scene.dt, ensemble=scene.method.ensemble, seed=scene.method.seed, real=real, member0=member0)
+    key = rng.seed_key(scene.method.seed)  # the one Philox key every solver of the run draws with
+    common = dict(grid=grid, dt=scene.dt, ensemble=scene.method.ensemble, key=key, real=real, member0=member0)
     return BUILDERS[scene.method.name](scene, ppc, common)
 
 
@@ -40,7 +42,7 @@ def _particle(scene: Scene, ppc: np.ndarray, common: dict) -> ParticleSolver:
 
 def _hybrid(scene: Scene, ppc: np.ndarray, common: dict) -> HybridSolver:
     spde = _spde(ppc, common, gaussian=scene.hybrid.spde == "gaussian", track_mean=scene.hybrid.ghost_profile == "mean")
-    solver = HybridSolver(spde, scene.hybrid.regrid, scene.hybrid.regrid_interval, scene.method.seed, scene.hybrid.ghost_profile,
+    solver = HybridSolver(spde, scene.hybrid.regrid, scene.hybrid.regrid_interval, scene.hybrid.ghost_profile,
                           scene.hybrid.particle_substeps)
     solver.initialize()
     return solver

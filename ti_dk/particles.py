@@ -25,12 +25,12 @@ class Walker:
     (Issue 13: this replaced one counter per particle, changing the 1D and 2D walk streams.)
     """
 
-    def __init__(self, grid: Grid, dt: float, real, seed: int, member0: int = 0):
+    def __init__(self, grid: Grid, dt: float, real, key: tuple[int, int], member0: int = 0):
         self.grid, self.dt, self.real = grid, dt, real
         self.member0 = member0  # global index of member 0 (random numbers are keyed on the global index)
         self.dim = grid.dim
         self.group = max(1, 4 // self.dim)  # consecutive identities sharing one Philox counter
-        self.key = rng.seed_key(seed)
+        self.key = key  # the Philox key of the run (rng.seed_key of its seed)
         rng.prepare()
 
     @ti.func
@@ -139,12 +139,13 @@ class ParticleSolver(Solver):
     otherwise the slot is the id and one buffer suffices.
     """
 
-    def __init__(self, grid: Grid, dt: float, ensemble: int, seed: int, real, capacity: int, member0: int = 0):
+    def __init__(self, grid: Grid, dt: float, ensemble: int, key: tuple[int, int], real, capacity: int,
+                 member0: int = 0):
         self.grid, self.dt, self.ensemble, self.real, self.capacity = grid, dt, ensemble, real, capacity
         self.dim = grid.dim
         self.n = grid.cells
-        self.key = rng.seed_key(seed)
-        self.walker = Walker(grid, dt, real, seed, member0)
+        self.key = key  # the Philox key of the run (rng.seed_key of its seed)
+        self.walker = Walker(grid, dt, real, key, member0)
         open_ = grid.has_dirichlet
         self.pool = pool.ParticlePool(ensemble, capacity, self.dim, real, buffers=1 + open_, ids=open_)
         self.cur = 0  # the pool buffer holding the particles
