@@ -41,6 +41,7 @@ import numpy as np  # noqa: E402
 
 from . import initial  # noqa: E402
 from .grid import Grid  # noqa: E402
+from .pool import capacity  # noqa: E402
 from .regrid import RegridParams  # noqa: E402
 from .rng import PURPOSE_BITS  # noqa: E402
 
@@ -627,7 +628,6 @@ PARTICLE_RATE = 3e7  # particle steps per second, likewise
 def _particles(scene: Scene) -> float:
     """The particles per member the particle method must hold (an upper bound for huge grids)."""
     from .particles import ParticleSolver  # pure NumPy; imported here to keep config light
-    from .pool import capacity
 
     m = math.prod(scene.grid.cells)
     if m <= 10**7:
@@ -656,7 +656,9 @@ def memory_estimate(scene: Scene) -> dict[str, float]:
             est["fields"] += mc * (1 + scene.grid.dim) * real
         if method == "hybrid":
             est["fields"] += mc * 32  # region, ghost ring, cell lists, counts
-            est["particles"] += 2 * 1.5 * min(scene.hybrid.threshold, _ppc_max(scene)) * mc * (scene.grid.dim * real + 8)
+            # two buffers of slots for every member at the threshold density everywhere
+            per_member = capacity(min(scene.hybrid.threshold, _ppc_max(scene)) * cells)
+            est["particles"] += 2 * scene.method.ensemble * per_member * (scene.grid.dim * real + 8)
         if method == "particle":
             est["fields"] += mc * 4
             # with reservoirs: ids (8 bytes) and two buffers plus a keep flag (the pool compacts)
