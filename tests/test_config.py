@@ -175,3 +175,12 @@ def test_sections_mirror_the_tables_and_flat_keys_still_work(tmp_path):
     (tmp_path / "wrong.toml").write_text('[grid]\ncells = [20]\nC = 0.1\n[init]\nname = "uniform"\n')
     with pytest.raises(ConfigError, match=r"\[grid\] C: this key belongs in \[time\]"):
         load_scene(tmp_path / "wrong.toml")
+
+
+def test_readme_layout_names_every_module_once():
+    readme = (Path(__file__).parent.parent / "README.md").read_text()
+    layout = readme[readme.index("## Layout"):]
+    listed = [line.split()[0] for line in layout.splitlines() if line.startswith(("ti_dk/", "studies/"))]
+    tree = sorted(str(p.relative_to(Path(__file__).parent.parent))
+                  for d in ("ti_dk", "studies") for p in (Path(__file__).parent.parent / d).glob("*.py"))
+    assert sorted(listed) == tree
