@@ -101,13 +101,8 @@ class SPDESolver(Solver):
         return self.q.to_numpy().astype(np.float64, copy=False)
 
     def diagnostics(self) -> dict[str, float]:
-        return {
-            "mass": self.mass[None],
-            "min_density": float(self.q_min[None]),
-            "negative_cells": int(self.n_negative[None]),
-            "boundary_inflow": self.inflow[None],
-            "clamped_steps": 0,
-        }
+        return {"mass": self.mass[None], "min_density": float(self.q_min[None]),
+                "negative_cells": int(self.n_negative[None]), "boundary_inflow": self.inflow[None], "clamped_steps": 0}
 
     # -- kernels ------------------------------------------------------------------------
     @ti.func
@@ -130,11 +125,6 @@ class SPDESolver(Solver):
         return v
 
     @ti.func
-    def _is_wall(self, i, a: ti.template()) -> bool:
-        """Whether face index ``i`` along axis ``a`` is a Neumann (no-flux) wall."""
-        return face_kind(self.grid, i, a) == NEUMANN
-
-    @ti.func
     def _face_noise(self, J, step):
         """The four Philox words of the counter group holding cell ``J`` (member index first).
 
@@ -155,7 +145,7 @@ class SPDESolver(Solver):
         """Total flux F (eq. 8) through the lower face of cell ``J`` along axis ``a``."""
         h = ti.static(self.grid.dx[a])
         F = self.real(0.0)
-        if not self._is_wall(J[a + 1], a):
+        if face_kind(self.grid, J[a + 1], a) != NEUMANN:  # a Neumann wall carries no flux
             qq = self._pair(self.q, J, a, self.grid.reservoir)
             J0 = J
             J0[0] = 0
