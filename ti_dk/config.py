@@ -40,7 +40,7 @@ else:  # pragma: no cover - exercised on Python 3.10 only
 import numpy as np  # noqa: E402
 
 from . import initial  # noqa: E402
-from .grid import Grid  # noqa: E402
+from .grid import Geometry, Grid  # noqa: E402
 from .pool import capacity  # noqa: E402
 from .regrid import RegridParams  # noqa: E402
 from .rng import PURPOSE_BITS  # noqa: E402
@@ -138,7 +138,7 @@ def key(kind: str, doc: str, default: Any = dataclasses.MISSING, flat: str | Non
 
 
 @dataclass(frozen=True)
-class GridKeys:
+class GridKeys(Geometry):
     """``[grid]``: the uniform Cartesian grid on ``[0, L_0] × … × [0, L_{d-1}]`` (paper §2.2.1)."""
 
     cells: tuple[int, ...] = key("special", "cells per axis; the number of entries is the dimension",
@@ -151,18 +151,6 @@ class GridKeys:
     reservoir_ppc: tuple[tuple[float, float], ...] = key(
         "special", "dirichlet sides: reservoir density in particles per cell (default 0)",
         form=f"a number in [0, {MAX_PPC:g}]; per axis, or [lo, hi] per axis")
-
-    @property
-    def dim(self) -> int:
-        return len(self.cells)
-
-    @property
-    def dx(self) -> tuple[float, ...]:
-        return tuple(L / n for L, n in zip(self.lengths, self.cells))
-
-    @property
-    def cell_volume(self) -> float:
-        return math.prod(self.dx)
 
 
 @dataclass(frozen=True)

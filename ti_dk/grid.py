@@ -10,8 +10,28 @@ PERIODIC, NEUMANN, DIRICHLET = 0, 1, 2
 _KIND = {"periodic": PERIODIC, "neumann": NEUMANN, "dirichlet": DIRICHLET}
 
 
+class Geometry:
+    """Cell sizes of a box of ``lengths`` cut into ``cells`` (a scene's ``[grid]`` keys or a
+    :class:`Grid`): what both derive from those two."""
+
+    cells: tuple[int, ...]
+    lengths: tuple[float, ...]
+
+    @property
+    def dim(self) -> int:
+        return len(self.cells)
+
+    @property
+    def dx(self) -> tuple[float, ...]:
+        return tuple(L / n for L, n in zip(self.lengths, self.cells))
+
+    @property
+    def cell_volume(self) -> float:
+        return math.prod(self.dx)
+
+
 @dataclass(frozen=True)
-class Grid:
+class Grid(Geometry):
     """A uniform Cartesian grid on ``[0, L_0] × … × [0, L_{d-1}]`` (paper §2.2.1).
 
     ``boundary[a] = (lo, hi)`` holds the boundary kind of each side of axis ``a``;
@@ -32,18 +52,6 @@ class Grid:
             boundary=tuple((_KIND[lo], _KIND[hi]) for lo, hi in scene.grid.boundary),
             reservoir=tuple((lo / vol, hi / vol) for lo, hi in scene.grid.reservoir_ppc),
         )
-
-    @property
-    def dim(self) -> int:
-        return len(self.cells)
-
-    @property
-    def dx(self) -> tuple[float, ...]:
-        return tuple(L / n for L, n in zip(self.lengths, self.cells))
-
-    @property
-    def cell_volume(self) -> float:
-        return math.prod(self.dx)
 
     @property
     def face_area(self) -> tuple[float, ...]:
