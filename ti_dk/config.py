@@ -564,12 +564,14 @@ def _check_sizes(scene: Scene) -> None:
     """Sizes whose derived quantities would overflow, underflow or mean nothing."""
     cells = math.prod(scene.grid.cells)
     if scene.method.ensemble * cells > MAX_FIELD:
-        raise ConfigError(f"ensemble x cells = {scene.method.ensemble * cells:,}: Taichi fields hold at most {MAX_FIELD:,} "
+        raise ConfigError(f"ensemble x cells = {scene.method.ensemble * cells:,}: Taichi fields hold at most "
+                          f"{MAX_FIELD:,} "
                           "entries; lower the ensemble or the cells (or split it: --executor dask)")
     vol = scene.grid.cell_volume
     if not (math.isfinite(vol) and vol > 0 and math.isfinite(1 / vol) and scene.dt > 0 and math.isfinite(scene.dt)
             and all(math.isfinite(h * h) and h * h > 0 for h in scene.grid.dx)):
-        raise ConfigError(f"lengths = {list(scene.grid.lengths)}, C = {scene.time.C}: the cell size or time step under- or "
+        raise ConfigError(f"lengths = {list(scene.grid.lengths)}, C = {scene.time.C}: the cell size or time step "
+                          "under- or "
                           "overflows double precision; give lengths and C nearer 1")
     steps = scene.time.t_end / scene.dt
     if steps < 0.5:
@@ -594,7 +596,8 @@ def _check_time_step(scene: Scene) -> None:
         )
     if scene.method.name == "hybrid" and scene.n_steps * scene.hybrid.particle_substeps >= HYBRID_STEP_LIMIT:
         raise ConfigError(
-            f"t_end = {scene.time.t_end} is {scene.n_steps * scene.hybrid.particle_substeps:,} particle steps; the hybrid numbers "
+            f"t_end = {scene.time.t_end} is {scene.n_steps * scene.hybrid.particle_substeps:,} particle steps; "
+            "the hybrid numbers "
             f"particle births in 27 bits: give fewer than {HYBRID_STEP_LIMIT:,} (shorter t_end, larger C or fewer "
             "particle_substeps)")
     if scene.method.name in ("particle", "hybrid") and scene.clamp_probability > CLAMP_WARN:
@@ -626,7 +629,8 @@ def _particles(scene: Scene) -> float:
 
 def _ppc_max(scene: Scene) -> float:
     """The largest initial or reservoir density, in particles per cell."""
-    return max([v for k, v in scene.init.params.items() if k.startswith("ppc")] + [Grid.from_scene(scene).reservoir_ppc_max])
+    ppc = [v for k, v in scene.init.params.items() if k.startswith("ppc")]
+    return max(ppc + [Grid.from_scene(scene).reservoir_ppc_max])
 
 
 def memory_estimate(scene: Scene) -> dict[str, float]:
@@ -651,7 +655,8 @@ def memory_estimate(scene: Scene) -> dict[str, float]:
             est["fields"] += mc * 4
             # with reservoirs: ids (8 bytes) and two buffers plus a keep flag (the pool compacts)
             d = Grid.from_scene(scene).has_dirichlet
-            est["particles"] += scene.method.ensemble * _particles(scene) * ((1 + d) * (scene.grid.dim * real + 8 * d) + d)
+            per_slot = (1 + d) * (scene.grid.dim * real + 8 * d) + d
+            est["particles"] += scene.method.ensemble * _particles(scene) * per_slot
     est["host copies"] = 3 * mc * 8  # density read back as float64, and its statistics update
     rows = 1 if scene.stats.t_equil is not None else len(scene.stats.output_times)
     est["statistics"] = (rows + 1) * cells * 12 * 8  # moments and accumulators per row

@@ -10,7 +10,6 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
-
 from .checkpoint import Progress, write_checkpoint
 from .config import Scene
 from .io import RunFile, frame_file, pack_ids, write_openpmd
@@ -73,7 +72,8 @@ class Statistics:
         self.extra = set(extra_steps)  # steps whose row only draws a frame
         self.stationary = scene.stats.t_equil is not None
         self.n_equil = round(scene.stats.t_equil / scene.dt) if self.stationary else 0  # first pooled step
-        self.pooled = CellStats(scene.grid.cells, scene.grid.cell_volume, scene.stats.histogram)  # stationary: the pooled samples
+        # stationary runs: the pooled samples
+        self.pooled = CellStats(scene.grid.cells, scene.grid.cell_volume, scene.stats.histogram)
         if prog.pooled:
             self.pooled.load_state(prog.pooled)
         self.latest: tuple[int | None, dict | None] = (None, None)  # (step, row) of the last row taken

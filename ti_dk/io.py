@@ -194,7 +194,8 @@ class RunFile:
         for k in self.keys:
             self._grow(st, k, scene.grid.cells, np.float64)
         if histogram_bins:
-            self._grow(st, "histogram", (*scene.grid.cells, histogram_bins), np.int64).attrs["lo"] = scene.stats.histogram[0]
+            hist = self._grow(st, "histogram", (*scene.grid.cells, histogram_bins), np.int64)
+            hist.attrs["lo"] = scene.stats.histogram[0]
             self._grow(st, "histogram_outside", scene.grid.cells, np.int64)
         self.diag = self.h5.create_group("diagnostics")
         self.h5.flush()
