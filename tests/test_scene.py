@@ -430,9 +430,9 @@ def test_long_runs_say_how_long_before_they_start(capsys):
 
     _announce(load_scene("void1d", ensemble=4))  # a fraction of a second: nothing said
     assert capsys.readouterr().err == ""
-    _announce(load_scene("void1d", ensemble=20000, t_end=1.0))
+    _announce(load_scene("void1d", ensemble=20000, t_end=2.0))
     err = capsys.readouterr().err
-    assert err.count("\n") == 1 and "160,000 steps" in err and "h on 2 CPU cores" in err
+    assert err.count("\n") == 1 and "320,000 steps" in err and "h on 2 CPU cores" in err
 
 
 # Pinned on x86-64, Taichi 1.7.4, CPU backend: a refactor that changes one bit of these runs changes

@@ -612,8 +612,10 @@ def _check_time_step(scene: Scene) -> None:
 # ---------------------------------------------------------------------------------------
 # what a run needs: memory, steps, time
 # ---------------------------------------------------------------------------------------
-SPDE_RATE = 2e7  # cell-updates per second on 2 CPU cores (benchmarks/RESULTS.md, rounded down)
+SPDE_RATE = {1: 1e8, 2: 2e7, 3: 2e7}  # cell-updates per second on 2 CPU cores, by dimension (RESULTS.md, rounded down)
 PARTICLE_RATE = 3e7  # particle steps per second, likewise
+HYBRID_PARTICLE_RATE = 1.5e7  # the hybrid's particle part (ghost fill, walk, cap, compaction) per particle-step
+REGRID_RATE = 1e7  # grid cells per second a hybrid regrid or on-demand extension handles (host masks, lists)
 
 
 def _particles(scene: Scene) -> float:
@@ -689,14 +691,29 @@ def check_memory(scene: Scene) -> None:
 
 
 def work_estimate(scene: Scene) -> tuple[int, float]:
-    """``(steps, seconds)``: the steps of the run and a rough wall time on 2 CPU cores."""
-    mc = scene.method.ensemble * math.prod(scene.grid.cells)
+    """``(steps, seconds)``: the steps of the run and a rough wall time on 2 CPU cores.
+
+    The hybrid adds its particles, counted as the cells tagged at the start holding ``threshold``
+    each (half that in a fixed region, which fills from its start), and a regrid's pass over the
+    grid every step when extensions are on (``regrid_floor > 0``), else every ``regrid_interval``
+    steps. Measured against (benchmarks/RESULTS.md): sphere3d 7.0 min estimated, 6.6 min run;
+    ellipse2d 49 s and 51–56 s; void1d with 20,000 members 32 s and 25 s (fv), 299 s and 211 s (hybrid).
+    """
+    cells = math.prod(scene.grid.cells)
+    mc = scene.method.ensemble * cells
     per_step = 0.0
     for method in (scene.method.name, scene.method.compare):
         if method in ("fv", "gaussian", "hybrid"):
-            per_step += mc / SPDE_RATE
+            per_step += mc / SPDE_RATE[scene.grid.dim]
         if method == "particle":
             per_step += scene.method.ensemble * _particles(scene) / PARTICLE_RATE
+        if method == "hybrid":
+            h = scene.hybrid
+            tagged = int(np.count_nonzero(scene.initial_ppc < h.threshold)) if cells <= 10**7 else cells
+            held = h.threshold if h.regrid_interval else h.threshold / 2  # particles per tagged cell
+            per_step += scene.method.ensemble * tagged * held / HYBRID_PARTICLE_RATE
+            if h.regrid_interval:
+                per_step += mc / REGRID_RATE / (1 if h.regrid_floor > 0 else h.regrid_interval)
     return scene.n_steps, scene.n_steps * per_step
 
 
