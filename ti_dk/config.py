@@ -207,8 +207,8 @@ class HybridKeys:
                                  lo=0.0, hi=1.0, above=True)
     min_box: int = key("int", "smallest box side in cells", _RG.min_box, lo=1)
     max_box: int = key("int", "largest box side in cells", _RG.max_box, lo=1)
-    regrid_floor: float = key("real", "cover uncovered cells below this times threshold before any step "
-                              "(0: scheduled regrids only)", _RG.floor, lo=0.0, hi=1.0)
+    regrid_floor: float = key("real", "an uncovered cell below this times threshold before a step: cover all "
+                              "below threshold (0: scheduled regrids only)", _RG.floor, lo=0.0, hi=1.0)
 
     @property
     def regrid(self) -> RegridParams:

@@ -275,8 +275,10 @@ class HybridSolver(RegionSolver):
             t = _clock()
             if n % self.regrid_interval == 0:
                 self.regrid(n)
-            elif self.params.floor > 0 and self.regions.mark_low(self.spde.q, self.params.floor * self.params.threshold):
-                self.extend(n)
+            elif self.params.floor > 0:
+                p = self.params
+                if self.regions.mark_low(self.spde.q, p.floor * p.threshold, p.threshold):
+                    self.extend(n)
             self.timing["regrid"] += _clock() - t
         t0 = _clock()
         if self.n_cover == 0:  # no particle region: a plain SPDE step
@@ -342,11 +344,13 @@ class HybridSolver(RegionSolver):
 
         Tagging promises that no uncovered cell holds fewer than ``threshold`` particles; between
         scheduled regrids that promise breaks, and FV then goes negative (one 2D step at C = 1/16
-        moves about √N/2 particles). Keeping it at every step (``regrid_floor = 1``) together with
-        the ghost-entry cap of :meth:`Coupling.cap_entries` cut the negative cell-steps of the
-        default ellipse2d run from 47 to 1 (an FV step of 4.7 σ from 5.6 particles); the cap
-        alone to 8. The price is an extension on most steps of that run (about 2× its time):
-        ``regrid_floor`` is the knob.
+        moves about √N/2 particles). An extension is due when an uncovered cell holds fewer than
+        ``regrid_floor · threshold``; it then covers every uncovered cell below ``threshold``, so
+        the next one waits until a cell falls from above ``threshold`` to below the floor
+        (hysteresis; with ``regrid_floor = 1`` the two sets are the same and an extension comes on
+        most steps of ellipse2d). Together with the ghost-entry cap of :meth:`Coupling.cap_entries`
+        this cut the negative cell-steps of ellipse2d at threshold 5 from 47 to 1 (an FV step of
+        4.7 σ from 5.6 particles); the cap alone to 8.
         """
         ppc = self.spde.density() * self.grid.cell_volume
         masks, members = self.regions.plan_extension()

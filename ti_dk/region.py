@@ -141,18 +141,21 @@ class Region:
         return J, self.inside(ti.Vector([J[a + 1] for a in ti.static(range(self.dim))]))
 
     @ti.kernel
-    def mark_low(self, q: ti.template(), threshold: ti.f64) -> ti.i32:
+    def mark_low(self, q: ti.template(), trigger: ti.f64, threshold: ti.f64) -> ti.i32:
         """Mark in ``low`` the uncovered cells whose density ``q`` holds fewer than ``threshold``
-        particles (or is negative), which the hybrid's ``extend`` covers; return how many."""
+        particles (or is negative), which the hybrid's ``extend`` covers; return how many uncovered
+        cells hold fewer than ``trigger`` (≤ ``threshold``): an extension is due when any does."""
         vol = ti.static(self.grid.cell_volume)
-        total = 0
+        due = 0
         for J in ti.grouped(self.covered):
             low = 0
-            if not self.covered[J] and ti.cast(q[J], ti.f64) * vol < threshold:
+            content = ti.cast(q[J], ti.f64) * vol
+            if not self.covered[J] and content < threshold:
                 low = 1
+                if content < trigger:
+                    due += 1
             self.low[J] = ti.u8(low)
-            total += low
-        return total
+        return due
 
     @ti.kernel
     def _ring(self):

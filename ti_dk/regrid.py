@@ -23,8 +23,9 @@ class RegridParams:
     ``buffer``: grow the tags by this many cells (Chebyshev distance, across periodic sides);
     ``efficiency``: smallest accepted fraction of tagged cells in a box;
     ``min_box`` / ``max_box``: box side limits in cells;
-    ``floor``: between scheduled regrids, uncovered cells below ``floor · threshold`` particles are
-    covered before the next step (0: scheduled regrids only; see ``HybridSolver.extend``).
+    ``floor``: between scheduled regrids, when an uncovered cell holds fewer than ``floor ·
+    threshold`` particles, every uncovered cell below ``threshold`` is covered before the next
+    step (0: scheduled regrids only; see ``HybridSolver.extend``).
     """
 
     threshold: float = 5.0
