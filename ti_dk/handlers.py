@@ -235,6 +235,8 @@ class Checkpoints:
         return self.path is not None and 0 < n < self.scene.n_steps and n % self.every == 0
 
     def write(self, n: int) -> None:
+        # diagnostics first: a run killed right after the checkpoint lands must find them in the run
+        # file up to its step (test_a_killed_run_keeps_its_diagnostics_up_to_the_last_flush)
+        self.diagnostics.flush(force=True)
         write_checkpoint(self.path, self.scene, *self.solvers, self.progress(n))
         self.latest = self.path
-        self.diagnostics.flush(force=True)
