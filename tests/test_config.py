@@ -175,6 +175,7 @@ def test_sections_mirror_the_tables_and_flat_keys_still_work(tmp_path):
                     '[grid]\ncells = [20]\n[init]\nname = "uniform"\nppc = 3\n')
     assert load_scene(flat, seed=9, name="nested") == s
     assert load_scene(nested, **s.flat()) == s and s.replace(ensemble=2).method.ensemble == 2
+    assert s.replace(ppc=4.0, C=0.05) == load_scene(nested, seed=9, ppc=4.0, C=0.05)
     (tmp_path / "wrong.toml").write_text('[grid]\ncells = [20]\nC = 0.1\n[init]\nname = "uniform"\n')
     with pytest.raises(ConfigError, match=r"\[grid\] C: this key belongs in \[time\]"):
         load_scene(tmp_path / "wrong.toml")

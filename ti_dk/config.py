@@ -308,9 +308,11 @@ class Scene:
         return out
 
     def replace(self, **flat: Any) -> "Scene":
-        """This scene with some keys changed by flat name (no new validation: for values already valid)."""
+        """This scene with some keys changed by flat name, the initial condition's own parameters
+        included (no new validation: for values already valid; :func:`load_scene` validates)."""
         top = {k: flat.pop(k) for k in ("name", "description") if k in flat}
-        parts = {}
+        params = {k: flat.pop(k) for k in list(flat) if k in self.init.params}
+        parts = {"init": {"items": tuple(sorted((self.init.params | params).items()))}} if params else {}
         for k, v in flat.items():
             sec, field_ = _WHERE[k]
             parts.setdefault(sec, {})[field_.name] = v
