@@ -219,7 +219,8 @@ class HybridSolver(RegionSolver):
     walls, the total number of particles (SPDE mass plus particles) is conserved to round-off.
 
     Regridding (every ``regrid_interval`` steps, at the start, and on demand for a member that
-    starts a step with an uncovered cell below the threshold; 0 keeps the first region): tag,
+    starts a step with an uncovered cell below ``regrid_floor · threshold``, see :meth:`extend`;
+    0 keeps the first region): tag,
     buffer and Berger–Rigoutsos per member; particles in cells that stay covered are kept, cells
     that leave the region keep their count as density, newly covered cells are sampled from the
     SPDE (the only step that changes the total; logged in ``regrids``). At the start the state is
@@ -267,6 +268,7 @@ class HybridSolver(RegionSolver):
     def initialize(self) -> None:
         """The first region from the (already initialised) SPDE, particles sampled into it."""
         self.regrid(0)
+        self.spde.diagnose()
 
     def step(self, n: int) -> None:
         """Advance from step ``n`` to ``n + 1`` (see the class docstring)."""
@@ -335,7 +337,7 @@ class HybridSolver(RegionSolver):
         """New region from the SPDE density at step ``n`` (tag, buffer, Berger–Rigoutsos)."""
         ppc = self.spde.density() * self.grid.cell_volume
         masks, tagged = self.regions.plan(ppc)
-        self.set_region(masks, n, ppc)
+        self._set_region(masks, n, ppc)
         self._log(n, tagged, 0)
 
     def extend(self, n: int) -> None:
@@ -354,7 +356,7 @@ class HybridSolver(RegionSolver):
         """
         ppc = self.spde.density() * self.grid.cell_volume
         masks, members = self.regions.plan_extension()
-        self.set_region(masks, n, ppc)
+        self._set_region(masks, n, ppc)
         self._log(n, int(regrid.tag(ppc, self.params.threshold).sum()), members)
 
     def _log(self, n: int, tagged: int, on_demand: int) -> None:
@@ -364,10 +366,15 @@ class HybridSolver(RegionSolver):
                              "created": int(self.sampler.created[None]), "removed": float(self.sampler.removed[None]),
                              "on_demand": on_demand})
 
-    def set_region(self, masks: np.ndarray, n: int, ppc: np.ndarray | None = None) -> None:
-        """Make ``masks`` (``(ensemble, *cells)`` booleans) the particle region at step ``n``."""
-        if ppc is None:
-            ppc = self.spde.density() * self.grid.cell_volume
+    def set_region(self, masks: np.ndarray, n: int) -> None:
+        """Make ``masks`` (``(ensemble, *cells)`` booleans) the particle region at step ``n``, its
+        diagnostics up to date (a region set from outside, between steps)."""
+        self._set_region(masks, n, self.spde.density() * self.grid.cell_volume)
+        self.spde.diagnose()
+
+    def _set_region(self, masks: np.ndarray, n: int, ppc: np.ndarray) -> None:
+        """:meth:`set_region` inside a step (regrid, extension), where the step's own
+        synchronisation brings the diagnostics up to date: no full-grid pass here."""
         masks = np.broadcast_to(masks, (self.ensemble, *self.n))
         self.pool = self.pool.grown(self._estimate(masks, ppc))
         self.regions.fresh.from_numpy(masks.astype(np.uint8))
@@ -378,7 +385,6 @@ class HybridSolver(RegionSolver):
         if self.sampler.check_need() > self.pool.capacity:  # the estimate bounds it; kept as a guard
             raise RuntimeError("particle pool estimate too small at a regrid")
         self._change += self.sampler.created[None] - self.sampler.removed[None]
-        self.spde.diagnose()
 
     def _estimate(self, masks: np.ndarray, ppc: np.ndarray) -> int:
         """Slots a member can need after a regrid: its region and ghost ring full, with the

@@ -243,10 +243,10 @@ def hybrid_mean_1d(ppc0: np.ndarray, region: np.ndarray, dt: float, steps: int, 
     M, c = ppc0.size, dt * (ppc0.size / length) ** 2  # C = Δt/Δx²
     ring = ~cov & (np.roll(cov, 1) | np.roll(cov, -1))
     fine_cov = np.repeat(cov, sub)
-    fK = np.fft.rfft(_fine_step(M, sub, length, dt))
+    K = _fine_step(M, sub, length, dt)
+    fK = np.fft.rfft(K)
     walk = lambda g: np.fft.irfft(np.fft.rfft(g) * fK, M * sub)  # noqa: E731
     u = (np.arange(sub) + 0.5) / sub
-    K = _fine_step(M, sub, length, dt)
     to_next = np.array([K[(np.arange(sub, 2 * sub) - s)].sum() for s in range(sub)])  # bin s → cell c+1
     to_prev = to_next[::-1]
     fv = lambda q: q + 0.5 * c * (np.roll(q, 1) - 2 * q + np.roll(q, -1))  # noqa: E731  eq. (9), E Z = 0
