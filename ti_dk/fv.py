@@ -143,7 +143,6 @@ class SPDESolver(Solver):
     @ti.func
     def _face_flux(self, J, a: ti.template(), bits):
         """Total flux F (eq. 8) through the lower face of cell ``J`` along axis ``a``."""
-        h = ti.static(self.grid.dx[a])
         F = self.real(0.0)
         if face_kind(self.grid, J[a + 1], a) != NEUMANN:  # a Neumann wall carries no flux
             qq = self._pair(self.q, J, a, self.grid.reservoir)
@@ -152,16 +151,23 @@ class SPDESolver(Solver):
             if ti.static(self.track_mean):
                 if J[0] == 0:
                     s = self._pair(self.qbar, J0, a, self.grid.reservoir)
-                    self.flux_bar[J0][a] = self.real(0.5 / h) * (s[1] - s[0])
+                    self.flux_bar[J0][a] = self.real(0.5 / self.grid.dx[a]) * (s[1] - s[0])
             r = self._pair(self.root, J0 if ti.static(self.gaussian) else J, a, self.root_reservoir)
-            F = self.real(0.5 / h) * (qq[1] - qq[0]) \
-                + self.real(0.5 * self.noise_scale) * (r[0] + r[1]) * rng.normal(bits, self.real)
-            if ti.static(DIRICHLET in self.grid.boundary[a]):
-                area = ti.static(self.grid.face_area[a] * self.dt)
-                if J[a + 1] == 0:
-                    self.inflow[None] += -ti.cast(F, ti.f64) * area
-                elif J[a + 1] == self.n[a]:
-                    self.inflow[None] += ti.cast(F, ti.f64) * area
+            F = self._flux(J[a + 1], a, qq[0], qq[1], r[0] + r[1], bits)
+        return F
+
+    @ti.func
+    def _flux(self, i, a: ti.template(), q_left, q_right, root_sum, bits):
+        """Eq. (8) through face ``i`` along axis ``a`` from the densities on its two sides and the
+        sum of their amplitudes' square roots; a Dirichlet face adds what it carries to :attr:`inflow`."""
+        F = self.real(0.5 / self.grid.dx[a]) * (q_right - q_left) \
+            + self.real(0.5 * self.noise_scale) * root_sum * rng.normal(bits, self.real)
+        if ti.static(DIRICHLET in self.grid.boundary[a]):
+            area = ti.static(self.grid.face_area[a] * self.dt)
+            if i == 0:
+                self.inflow[None] += -ti.cast(F, ti.f64) * area
+            elif i == self.n[a]:
+                self.inflow[None] += ti.cast(F, ti.f64) * area
         return F
 
     # -- the split step (public: the hybrid runs its particles between these) ------------
@@ -226,36 +232,56 @@ class SPDESolver(Solver):
 
     @ti.kernel
     def _step_members(self, step: ti.u32):
-        """The 1D finite-volume step (:meth:`fluxes`, :meth:`update`, :meth:`diagnose`) one member
-        at a time: a member's cells, faces and roots stay in the first-level cache through its
-        four passes, and its diagnostics are summed locally with one atomic per member (not per
-        cell). The same face functions give the same bits as the three-kernel step."""
+        """The 1D finite-volume step (:meth:`fluxes`, :meth:`update`, :meth:`diagnose`) in one pass
+        over each member's faces: face ``i``'s flux (eq. 8) is made from the old densities of cells
+        ``i − 1`` and ``i``, held in registers with their roots, and then cell ``i − 1`` is updated
+        (eq. 9) from it and the flux of face ``i − 1``; so each cell is read and written once, and
+        a member's diagnostics are summed locally with one atomic per member. Same bits as the
+        three-kernel step (tested); issue 13: this replaced four passes over the member."""
         n, G = ti.static(self.n[0], self.group)
+        lo, hi = ti.static(self.grid.boundary[0])
+        res_lo, res_hi = ti.static(self.grid.reservoir[0])
         vol = ti.static(self.grid.cell_volume)
         self.inflow[None] = 0.0
         self.mass[None] = 0.0
         self.q_min[None] = self.real(ti.math.inf)
         self.n_negative[None] = 0
         for e in range(self.ensemble):
-            for i in range(n):
-                self.root[e, i] = ti.sqrt(ti.max(self.q[e, i], self.real(0.0)))
-            for k in range(self.groups[0]):
+            q_left, root_left = self.real(0.0), self.real(0.0)  # cell i − 1 (old value) and its root
+            if ti.static(lo == PERIODIC):
+                q_left = self.q[e, n - 1]
+            elif ti.static(lo == DIRICHLET):
+                q_left = self.real(res_lo)
+            root_left = ti.sqrt(ti.max(q_left, self.real(0.0)))
+            F_left, F_first = self.real(0.0), self.real(0.0)  # fluxes of face i − 1 and face 0
+            mass, q_min, negative = 0.0, self.real(ti.math.inf), 0
+            for k in range((n + G) // G):  # faces 0 … n, G per Philox counter
                 bits = self._face_noise(ti.Vector([e, G * k]), step)
                 for g in ti.static(range(G)):
                     i = G * k + g
-                    if i < n:
-                        self.flux[e, i][0] = self._face_flux(ti.Vector([e, i]), 0, bits[g])
-            if ti.static(self.grid.boundary[0][1] != PERIODIC):
-                bits = self._face_noise(ti.Vector([e, n]), step)
-                self.flux[e, n][0] = self._face_flux(ti.Vector([e, n]), 0, bits[n % G])
-            mass, q_min, negative = 0.0, self.real(ti.math.inf), 0
-            for i in range(n):
-                J = ti.Vector([e, i])
-                qn = self.q[J] + self.real(self.dt) * self._divergence(self.flux, J)
-                self.q[J] = qn
-                mass += ti.cast(qn, ti.f64)
-                q_min = ti.min(q_min, qn)
-                negative += ti.cast(qn < 0, ti.i32)
+                    if i <= n:
+                        q_right = self.real(0.0)
+                        if i < n:
+                            q_right = self.q[e, i]
+                        elif ti.static(hi == DIRICHLET):
+                            q_right = self.real(res_hi)
+                        root_right = ti.sqrt(ti.max(q_right, self.real(0.0)))
+                        F = self.real(0.0)
+                        if (i == 0 and ti.static(lo == NEUMANN)) or (i == n and ti.static(hi == NEUMANN)):
+                            F = self.real(0.0)
+                        elif i == n and ti.static(hi == PERIODIC):
+                            F = F_first
+                        else:
+                            F = self._flux(i, 0, q_left, q_right, root_left + root_right, bits[g])
+                        if i == 0:
+                            F_first = F
+                        else:  # eq. (9) for cell i − 1
+                            qn = q_left + self.real(self.dt) * ((F - F_left) * self.real(1.0 / self.grid.dx[0]))
+                            self.q[e, i - 1] = qn
+                            mass += ti.cast(qn, ti.f64)
+                            q_min = ti.min(q_min, qn)
+                            negative += ti.cast(qn < 0, ti.i32)
+                        q_left, root_left, F_left = q_right, root_right, F
             self.mass[None] += mass * vol
             ti.atomic_min(self.q_min[None], q_min)
             self.n_negative[None] += negative
