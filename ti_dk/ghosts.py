@@ -189,7 +189,9 @@ class Sampler:
                 self.spde.q[J] = self.real(ti.cast(scratch[J], ti.f64) / vol)
                 scratch[J] = 0
             covered[J] = fresh[J]
-        for e, p in ti.ndrange(self.spde.ensemble, pool.capacity):
+        pool.find_top(cur)
+        for i in range(self.spde.ensemble * pool.top[None]):  # the occupied slots, not the capacity
+            e, p = pool.slot(i)
             if p < pool.n[cur, e]:
                 D = ti.Vector.zero(ti.i32, self.dim + 1)
                 D[0] = e

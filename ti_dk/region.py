@@ -13,7 +13,6 @@ import taichi as ti
 
 from . import regrid
 from .grid import DIRICHLET, PERIODIC, Grid, across
-from .pool import BLOCK
 
 
 @ti.data_oriented
@@ -39,7 +38,7 @@ class Region:
         self.ring = ti.field(ti.u8, shape=(E, *self.padded))  # 1 on ghost cells (padded index = cell + 1)
         self.ring_list = ti.field(ti.i32, shape=E * math.prod(self.padded))  # flat indices of ghost cells
         self.cover_list = ti.field(ti.i32, shape=E * math.prod(n))  # flat indices of covered cells
-        self.block = ti.field(ti.i32, shape=-(-self.ring_list.shape[0] // BLOCK))  # list entries per block
+        self.row = ti.field(ti.i32, shape=E * math.prod(self.padded[:-1]))  # list entries per row (last axis)
         self.listed = ti.field(ti.i32, shape=())  # length of the list built last
         self.n_ring, self.n_cover = 0, 0  # lengths of the two lists
         self.boxes: list[list[regrid.Box]] = [[] for _ in range(E)]  # each member's region
@@ -191,25 +190,33 @@ class Region:
     @ti.kernel
     def _list(self, flags: ti.template(), out: ti.template()) -> ti.i32:
         """Write the flat indices of the nonzero ``flags``, ascending, to the front of ``out``
-        (per-block counts, an exclusive scan over blocks, a scatter); return how many."""
-        size = ti.static(math.prod(flags.shape))
-        blocks = ti.static(-(-size // BLOCK))
-        for k in range(blocks):
+        (per-row counts along the last axis, an exclusive scan over rows, a scatter); return how
+        many. (Rows, not fixed blocks of the flat index: a row's cells are reached by adding 1,
+        with no division per cell.)"""
+        rows = ti.static(math.prod(flags.shape[:-1]))
+        L, last = ti.static(flags.shape[-1], len(flags.shape) - 1)
+        for r in range(rows):
+            R = self.unflatten(r, ti.static(flags.shape[:-1]))
+            J = ti.Vector([R[b] for b in ti.static(range(last))] + [0])
             c = 0
-            for i in range(k * BLOCK, ti.min(k * BLOCK + BLOCK, size)):
-                c += ti.cast(flags[self.unflatten(i, ti.static(flags.shape))] != 0, ti.i32)
-            self.block[k] = c
+            for j in range(L):
+                J[last] = j
+                c += ti.cast(flags[J] != 0, ti.i32)
+            self.row[r] = c
         for _ in range(1):  # the scan, serial
             total = 0
-            for k in range(blocks):
-                c = self.block[k]
-                self.block[k] = total
+            for r in range(rows):
+                c = self.row[r]
+                self.row[r] = total
                 total += c
             self.listed[None] = total
-        for k in range(blocks):
-            j = self.block[k]
-            for i in range(k * BLOCK, ti.min(k * BLOCK + BLOCK, size)):
-                if flags[self.unflatten(i, ti.static(flags.shape))] != 0:
-                    out[j] = i
-                    j += 1
+        for r in range(rows):
+            R = self.unflatten(r, ti.static(flags.shape[:-1]))
+            J = ti.Vector([R[b] for b in ti.static(range(last))] + [0])
+            k = self.row[r]
+            for j in range(L):
+                J[last] = j
+                if flags[J] != 0:
+                    out[k] = r * L + j
+                    k += 1
         return self.listed[None]
