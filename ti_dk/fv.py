@@ -30,7 +30,10 @@ class SPDESolver(Solver):
     2 in 2D, 1 in 3D), word ``g·dim + a`` driving the lower face along axis ``a`` of the group's
     cell ``g``, so all four words are used in 1D and 2D (three in 3D). This numbering replaced one
     counter per cell (issue 13); it changed the 1D and 2D noise streams, not the 3D one.
-    ``√max(s, 0)`` is taken once per cell per step (a pass before the fluxes), not twice per face.
+    For the finite-volume scheme ``√max(q, 0)`` is taken on both sides of each face as the flux is
+    made (measured: as fast as loading roots from a pass before, and that pass, 7 % of the 2D step,
+    and its field are gone); for the Gaussian scheme q̄'s roots are taken once per cell for all
+    members.
 
     Boundaries: periodic faces wrap; Neumann faces carry no flux; a Dirichlet face sees a ghost
     cell at the reservoir density (for q and for q̄).
@@ -57,13 +60,12 @@ class SPDESolver(Solver):
         # total flux F (eq. 8) through the lower face of each cell, one component per axis
         # [particles / (area · time)]; the padded last layer holds the upper boundary faces
         self.flux = ti.Vector.field(self.dim, real, shape=(ensemble, *faces))
-        # √max(s, 0) of every cell (s = q, or q̄ for the Gaussian scheme) [√(particles / volume)]
-        self.root = ti.field(real, shape=(1 if gaussian else ensemble, *self.n))
+        if gaussian:  # √max(q̄, 0) of every cell, shared by all members [√(particles / volume)]
+            self.root = ti.field(real, shape=(1, *self.n))
         self.root_reservoir = tuple(tuple(math.sqrt(max(r, 0.0)) for r in side) for side in grid.reservoir)
         if self.track_mean:
             self.qbar = ti.field(real, shape=(1, *self.n))  # deterministic density q̄ (eq. 10) [particles / volume]
             self.flux_bar = ti.Vector.field(self.dim, real, shape=(1, *faces))  # ½∇q̄ on faces [particles / (area · time)]
-        self._amplitude_of = self.qbar if gaussian else self.q  # s of eq. (8): q (eq. 7) or q̄ (eq. 11)
         self.mass = ti.field(ti.f64, shape=())  # Σ over members and cells of q V_c after the step [particles]
         self.q_min = ti.field(real, shape=())  # smallest q over members and cells [particles / volume]
         self.n_negative = ti.field(ti.i64, shape=())  # cells (over all members) with q < 0
@@ -152,8 +154,13 @@ class SPDESolver(Solver):
                 if J[0] == 0:
                     s = self._pair(self.qbar, J0, a, self.grid.reservoir)
                     self.flux_bar[J0][a] = self.real(0.5 / self.grid.dx[a]) * (s[1] - s[0])
-            r = self._pair(self.root, J0 if ti.static(self.gaussian) else J, a, self.root_reservoir)
-            F = self._flux(J[a + 1], a, qq[0], qq[1], r[0] + r[1], bits)
+            root_sum = self.real(0.0)
+            if ti.static(self.gaussian):  # q̄'s roots: once per cell for all members (the root pass)
+                r = self._pair(self.root, J0, a, self.root_reservoir)
+                root_sum = r[0] + r[1]
+            else:
+                root_sum = ti.sqrt(ti.max(qq[0], self.real(0.0))) + ti.sqrt(ti.max(qq[1], self.real(0.0)))
+            F = self._flux(J[a + 1], a, qq[0], qq[1], root_sum, bits)
         return F
 
     @ti.func
@@ -177,8 +184,9 @@ class SPDESolver(Solver):
         eq. 10, into ``flux_bar``), and the Dirichlet inflow they carry into :attr:`inflow`; q is
         not changed. Noise keyed on (seed, member, ``step``, face)."""
         self.inflow[None] = 0.0
-        for J in ti.grouped(self.root):  # the amplitude's square roots, once per cell
-            self.root[J] = ti.sqrt(ti.max(self._amplitude_of[J], self.real(0.0)))
+        if ti.static(self.gaussian):
+            for J in ti.grouped(self.root):  # q̄'s square roots, once per cell
+                self.root[J] = ti.sqrt(ti.max(self.qbar[J], self.real(0.0)))
         G, last = ti.static(self.group, self.dim)
         for K in ti.grouped(ti.ndrange(self.ensemble, *self.groups)):  # the lower faces of G cells
             J = K
