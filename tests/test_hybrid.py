@@ -47,6 +47,28 @@ def test_fixed_region_conserves_mass(cells, boundary):
     assert s.diagnostics()["particles"] > 0
 
 
+@pytest.mark.parametrize("cells", [[30, 26], [10, 12, 8]])
+def test_scheduled_regrid_sorts_the_particles_by_cell(cells):
+    # a scheduled regrid leaves each member's particles in cell order (Coupling.sort), every
+    # particle in a covered cell and as many in each as the cell's density says
+    scene = load_scene("ellipse2d", method="hybrid", cells=cells, regrid_interval=3, ensemble=2, ppc_outer=12,
+                       ppc_inner=6, threshold=4.0, seed=6) if len(cells) == 2 else \
+        load_scene("void1d", method="hybrid", cells=cells, regrid_interval=3, ensemble=2, ppc=8, seed=6)
+    s = _solver(scene)
+    for n in range(5):
+        s.step(n)
+    s.regrid(5)
+    x, _, n_real = s.pool.occupied(s.cur)
+    q, region = s.density() * s.grid.cell_volume, s.region()
+    for e in range(2):
+        cell = np.minimum((x[e, :n_real[e]] / s.grid.dx).astype(int), np.array(cells) - 1)
+        flat = np.ravel_multi_index(tuple(cell.T), tuple(cells))
+        assert n_real[e] > 0 and np.all(np.diff(flat) >= 0)
+        counts = np.bincount(flat, minlength=np.prod(cells)).reshape(cells)
+        assert np.all(region[e][counts > 0])
+        assert np.array_equal(counts[region[e]], np.round(q[e][region[e]]).astype(int))
+
+
 def test_regrid_ledger_and_region_follows_density():
     # 2D ellipses: the empty ring is tagged; as it fills cells leave the region and, as the inner
     # ellipse empties, new cells enter it

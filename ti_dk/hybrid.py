@@ -1,5 +1,6 @@
 """The AMAR hybrid (paper §3): the SPDE everywhere, real Brownian particles in a particle region."""
 
+import math
 import time
 
 import numpy as np
@@ -34,6 +35,7 @@ class Coupling:
         E, n = spde.ensemble, spde.n
         self.count = ti.field(ti.i32, shape=(E, *n))  # particles ending the walk in each covered cell
         self.dN = ti.field(ti.i32, shape=(E, *n))  # ΔN: net particles the region gave each uncovered cell
+        self.row = ti.field(ti.i32, shape=E * math.prod(n[:-1]))  # first target slot of each row of cells (sort)
         self.entered = ti.field(ti.u64, shape=(E, *n))  # bit k: ghost k of this cell walked into the region
         self.cap = ti.field(ti.i32, shape=(E, *n))  # most ghosts of this cell that may enter this sub-step
         self.clamped = ti.field(ti.i64, shape=())  # axis steps clamped to ±Δx in the last walk
@@ -96,6 +98,60 @@ class Coupling:
                         self.dN[D] += 1
                     else:
                         self.p_inflow[None] -= 1
+
+    @ti.func
+    def _row(self, R):
+        """The flat index of row ``R`` (member, then the cell index without its last axis)."""
+        r = R[0]
+        for a in ti.static(range(1, self.dim)):
+            r = r * self.n[a - 1] + R[a]
+        return r
+
+    @ti.kernel
+    def sort(self, pool: ti.template(), b: ti.i32):
+        """Compact buffer ``b`` into the other like :meth:`pool.ParticlePool.compact` (the slots
+        marked to ``keep``), but in cell order (a counting sort: counts per cell in ``count``, a
+        scan over rows of cells, a scatter). A particle's random numbers are keyed on its identity,
+        so the order changes no result; it keeps the walk's cell lookups and ``count`` updates
+        local, where the order left by many steps of compaction and appended ghosts scatters them
+        over the grid (measured in sphere3d: the walk 285 → 193 ms a step)."""
+        E, L, rows = ti.static(self.spde.ensemble, self.n[-1], math.prod(self.n[:-1]))
+        pool.find_top(b)
+        for i in range(E * pool.top[None]):
+            e, p = pool.slot(i)
+            if p < pool.n[b, e] and pool.keep[e, p]:
+                self.count[self._cell(e, pool.x[b, e, p])] += 1
+        # rows of cells along the last axis, member first. (Taichi 1.7.4: reaching a row's cells
+        # through Region.unflatten of a flat row index here failed to compile, "Assertion failure:
+        # load_src->is<MatrixPtrStmt>() ..." in store_to_load_forwarding; a grouped ndrange works.)
+        for R in ti.grouped(ti.ndrange(E, *self.n[:-1])):  # particles per row
+            c = 0
+            for j in range(L):
+                c += self.count[ti.Vector([R[a] for a in ti.static(range(self.dim))] + [j])]
+            self.row[self._row(R)] = c
+        for e in range(E):  # the scan over a member's rows, serial
+            total = 0
+            for k in range(rows):
+                c = self.row[e * rows + k]
+                self.row[e * rows + k] = total
+                total += c
+            pool.n[1 - b, e] = total
+            pool.kept[e] = total
+        for R in ti.grouped(ti.ndrange(E, *self.n[:-1])):  # count becomes each cell's next target slot
+            total = self.row[self._row(R)]
+            for j in range(L):
+                J = ti.Vector([R[a] for a in ti.static(range(self.dim))] + [j])
+                c = self.count[J]
+                self.count[J] = total
+                total += c
+        for i in range(E * pool.top[None]):
+            e, p = pool.slot(i)
+            if p < pool.n[b, e] and pool.keep[e, p]:
+                k = ti.atomic_add(self.count[self._cell(e, pool.x[b, e, p])], 1)
+                pool.x[1 - b, e, k] = pool.x[b, e, p]
+                pool.pid[1 - b, e, k] = pool.pid[b, e, p]
+        for J in ti.grouped(self.count):
+            self.count[J] = 0
 
     @ti.kernel
     def cap_entries(self, pool: ti.template(), cur: ti.i32, step: ti.i32, last: ti.i32, n_ring: ti.i32):
@@ -337,7 +393,7 @@ class HybridSolver(RegionSolver):
         """New region from the SPDE density at step ``n`` (tag, buffer, Berger–Rigoutsos)."""
         ppc = self.spde.density() * self.grid.cell_volume
         masks, tagged = self.regions.plan(ppc)
-        self._set_region(masks, n, ppc)
+        self._set_region(masks, n, ppc, sort=True)
         self._log(n, tagged, 0)
 
     def extend(self, n: int) -> None:
@@ -372,14 +428,18 @@ class HybridSolver(RegionSolver):
         self._set_region(masks, n, self.spde.density() * self.grid.cell_volume)
         self.spde.diagnose()
 
-    def _set_region(self, masks: np.ndarray, n: int, ppc: np.ndarray) -> None:
+    def _set_region(self, masks: np.ndarray, n: int, ppc: np.ndarray, sort: bool = False) -> None:
         """:meth:`set_region` inside a step (regrid, extension), where the step's own
-        synchronisation brings the diagnostics up to date: no full-grid pass here."""
+        synchronisation brings the diagnostics up to date: no full-grid pass here. With ``sort``
+        (the scheduled regrids) the kept particles are put in cell order (:meth:`Coupling.sort`)."""
         masks = np.broadcast_to(masks, (self.ensemble, *self.n))
         self.pool = self.pool.grown(self._estimate(masks, ppc))
         self.regions.fresh.from_numpy(masks.astype(np.uint8))
         self.sampler.cover(self.pool, self.cur, n * self.substeps, self._tilt_on(n), self.coupling.count)
-        self.pool.compact(self.cur)
+        if sort:
+            self.coupling.sort(self.pool, self.cur)
+        else:
+            self.pool.compact(self.cur)
         self.cur = 1 - self.cur
         self.regions.lists()
         if self.sampler.check_need() > self.pool.capacity:  # the estimate bounds it; kept as a guard
