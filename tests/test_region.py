@@ -31,14 +31,19 @@ def _ring_reference(covered, boundary):
     return ring
 
 
-@pytest.mark.parametrize("boundary", [((PERIODIC, PERIODIC), (PERIODIC, PERIODIC)),
-                                      ((DIRICHLET, NEUMANN), (PERIODIC, PERIODIC)),
-                                      ((DIRICHLET, DIRICHLET), (NEUMANN, DIRICHLET))])
-def test_ring_and_lists_match_the_definition(boundary):
-    grid = Grid((7, 6), (1.0, 1.0), boundary, ((2.0, 3.0), (1.0, 4.0)))
+_P, _D, _N = (PERIODIC, PERIODIC), (DIRICHLET, DIRICHLET), (NEUMANN, NEUMANN)
+
+
+@pytest.mark.parametrize("cells,boundary", [((7, 6), (_P, _P)), ((7, 6), ((DIRICHLET, NEUMANN), _P)),
+                                            ((7, 6), (_D, (NEUMANN, DIRICHLET))), ((9,), (_D,)), ((9,), (_P,)),
+                                            ((5, 4, 6), ((DIRICHLET, NEUMANN), _P, (NEUMANN, DIRICHLET))),
+                                            ((5, 4, 6), (_P, _P, _P))])
+def test_ring_and_lists_match_the_definition(cells, boundary):
+    d = len(cells)
+    grid = Grid(cells, (1.0,) * d, boundary, ((2.0, 3.0),) * d)
     r = Region(grid, 3, RegridParams())
-    covered = (np.random.default_rng(1).uniform(size=(3, 7, 6)) < 0.2).astype(np.uint8)
-    covered[1, 0, :] = 1  # a whole boundary row: reservoir ghosts below it
+    covered = (np.random.default_rng(1).uniform(size=(3, *cells)) < 0.2).astype(np.uint8)
+    covered[1, 0] = 1  # a whole boundary layer: reservoir ghosts below it
     r.covered.from_numpy(covered)
     r.lists()
     ring = r.ring.to_numpy()
