@@ -48,12 +48,14 @@ def make(layout: str, grid, ensemble: int, real):
 
 
 def canonical(x: np.ndarray, pid: np.ndarray, n: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Each member's first ``n[e]`` particles sorted by identity (birth word, then ``id0``): the
-    order of a checkpoint, whatever the layout or the thread order that appended them."""
+    """Each member's first ``n[e]`` particles sorted by identity (birth word, then ``id0``) and the
+    slots after them zeroed: the content of a checkpoint, whatever the layout or the thread order
+    that appended them."""
     x, pid = x.copy(), pid.copy()
     for e, k in enumerate(n):
         order = np.lexsort((pid[e, :k, 0], pid[e, :k, 1]))
         x[e, :k], pid[e, :k] = x[e, order], pid[e, order]
+        x[e, k:], pid[e, k:] = 0, 0
     return x, pid, n
 
 
