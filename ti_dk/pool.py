@@ -82,6 +82,12 @@ class ParticlePool:
             self.keep = ti.field(ti.u8, shape=(ensemble, capacity))  # 1: the slot survives the compaction
             self.offset = ti.field(ti.i32, shape=(ensemble, self.blocks))  # first target slot of each block
 
+    @property
+    def nbytes(self) -> int:
+        """Bytes of the pool's slot fields (positions, identities, marks)."""
+        slot = self.dim * np.dtype(numpy_dtype(self.real)).itemsize + 8 * self.ids
+        return self.ensemble * self.capacity * (self.buffers * slot + (self.buffers == 2))
+
     def grown(self, capacity: int) -> "ParticlePool":
         """This pool, or (when ``capacity`` exceeds its own) a new one of at least ``capacity`` slots
         and at least twice the old (every new pool recompiles the kernels) holding the same particles."""
@@ -269,6 +275,12 @@ class BlockPool:
         full[:keys.size] = keys
         self.list.from_numpy(full)
         self.listed[None] = keys.size
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes of the active blocks (slots of both buffers, counts, scan offsets)."""
+        slot = self.dim * np.dtype(numpy_dtype(self.real)).itemsize + 8 + 1
+        return self.active.size * (2 * self.capacity * slot + 4 * (3 + 2 * len(self.dirs)))
 
     def grown(self, capacity: int) -> "BlockPool":
         """This pool, or (when ``capacity`` exceeds its own) a new one with at least ``capacity``
