@@ -297,7 +297,7 @@ def test_both_pool_layouts_give_the_same_bits_on_one_and_two_threads():
 @pytest.mark.parametrize("scene,kw", [
     ("void1d", dict(cells=[60], ensemble=3, boundary=[["dirichlet", "neumann"]], reservoir_ppc=[[2.0, 0.0]],
                     regrid_interval=5, particle_substeps=2)),
-    ("sphere3d", dict(cells=[12, 12, 14], boundary="neumann", regrid_interval=3)),
+    ("sphere3d", dict(cells=[10, 10, 12], boundary="neumann", regrid_interval=3)),
 ])
 def test_pool_layouts_agree_step_by_step_and_load_each_others_state(scene, kw):
     def solver(layout):
@@ -305,26 +305,25 @@ def test_pool_layouts_agree_step_by_step_and_load_each_others_state(scene, kw):
         return _solver(sc)
 
     flat, pointer = solver("flat"), solver("pointer")
-    for n in range(12):
+    for n in range(8):
         flat.step(n)
         pointer.step(n)
         assert np.array_equal(flat.density(), pointer.density()) and flat.diagnostics() == pointer.diagnostics()
-    st = pointer.state()
-    assert all(np.array_equal(v, flat.state()[k]) for k, v in st.items())
-    flat2 = solver("flat")  # a pointer checkpoint continued by the flat pool, and the other way round
-    flat2.load_state(st)
-    pointer.load_state(flat.state())
-    for n in range(12, 20):
-        for s in (flat, flat2, pointer):
-            s.step(n)
-        assert np.array_equal(flat.density(), flat2.density()) and np.array_equal(flat.density(), pointer.density())
-        assert flat.diagnostics() == flat2.diagnostics() == pointer.diagnostics()
+    st, st_flat = pointer.state(), flat.state()
+    assert all(np.array_equal(v, st_flat[k]) for k, v in st.items())
+    flat.load_state(st)  # each continues from the other's state (a checkpoint's content)
+    pointer.load_state(st_flat)
+    for n in range(8, 14):
+        flat.step(n)
+        pointer.step(n)
+        assert np.array_equal(flat.density(), pointer.density()) and flat.diagnostics() == pointer.diagnostics()
+    assert all(np.array_equal(v, flat.state()[k]) for k, v in pointer.state().items())
 
 
 def test_a_checkpoint_of_one_layout_restarts_with_the_other(tmp_path):
-    common = dict(method="hybrid", cells=[48], ensemble=4, t_end=0.003, regrid_interval=5, compare="none")
+    common = dict(method="hybrid", cells=[48], ensemble=2, t_end=0.002, regrid_interval=5, compare="none")
     whole = run(load_scene("void1d", **common), out=tmp_path / "whole")
-    run(load_scene("void1d", **common), out=tmp_path / "first", checkpoint_every=20)
+    run(load_scene("void1d", **common), out=tmp_path / "first", checkpoint_every=15)
     resumed = run(load_scene("void1d", pool_layout="pointer", **common), out=tmp_path / "second",
                   restart=tmp_path / "first" / "void1d_hybrid_checkpoint.h5")
     assert np.array_equal(whole.final_density, resumed.final_density)
