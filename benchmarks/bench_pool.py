@@ -152,6 +152,7 @@ def one_layout(name: str, layout: str, side: int | None, threads: int) -> dict:
         digest.update(s.spde.q.to_numpy().tobytes())
     return {"run": name, "layout": layout, "side": getattr(s.pool, "side", None), "steps": steps,
             "start_s": start, "s_per_step": sum(times[1:]) / (steps - 1), "first_step_s": times[0],
+            "median_s": sorted(times[1:])[(steps - 1) // 2],
             "rss_gib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20, "pool_gib": most / 2**30,
             "particles": s.diagnostics()["particles"], "digest": digest.hexdigest()[:12]}
 
@@ -165,9 +166,9 @@ def compare_layouts(args) -> None:
 
     print(f"{platform.machine()}, {os.cpu_count()} cores, Taichi {'.'.join(map(str, ti.__version__))}, "
           f"CPU, {args.threads} threads, {time.strftime('%Y-%m-%d %H:%M')}\n")
-    print("| run | layout | steps | s/step | first step s | start s | peak RSS GiB | pool fields GiB | particles | "
-          "density digest |")
-    print("|---|---|---|---|---|---|---|---|---|---|")
+    print("| run | layout | steps | s/step (mean) | s/step (median) | first step s | start s | peak RSS GiB | "
+          "pool fields GiB | particles | density digest |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
     for name in args.runs:
         variants = [("flat", None), ("pointer", None)] + [("pointer", k) for k in args.side]
         for layout, side in variants:
@@ -178,7 +179,7 @@ def compare_layouts(args) -> None:
                 continue
             d = json.loads(r.stdout.strip().splitlines()[-1])
             what = layout + (f" ({d['side']} cells/axis)" if d["side"] else "")
-            print(f"| {name} | {what} | {d['steps']} | {d['s_per_step']:.3f} | {d['first_step_s']:.1f} | "
+            print(f"| {name} | {what} | {d['steps']} | {d['s_per_step']:.4f} | {d['median_s']:.4f} | {d['first_step_s']:.1f} | "
                   f"{d['start_s']:.1f} | {d['rss_gib']:.2f} | {d['pool_gib']:.3f} | {d['particles']:,} | "
                   f"`{d['digest']}` |", flush=True)
 

@@ -144,6 +144,10 @@ class ParticlePool:
         return self
 
     @ti.func
+    def assume_active(self):
+        """Nothing to do: a flat pool has no sparse storage (see :meth:`BlockPool.assume_active`)."""
+
+    @ti.func
     def units(self):
         """Units of the particle loop: chunks of :data:`BLOCK` slots of every member."""
         return self.ensemble * self.blocks
@@ -240,6 +244,7 @@ class BlockPool:
         assert ensemble * self.NB < 2**31, "block keys are 32-bit"
         self.periodic = tuple(lo == 0 for lo, _ in grid.boundary)  # grid.PERIODIC
         self.dirs = list(itertools.product((-1, 0, 1), repeat=self.dim))  # neighbour blocks, code = index
+        self.ndirs = len(self.dirs)
         fb = ti.FieldsBuilder()
         self.x = ti.Vector.field(self.dim, real)  # positions [length], index (e, B, buffer, slot)
         self.pid = ti.Vector.field(2, ti.u32)  # identity: two words keying the particle's random numbers
@@ -251,7 +256,7 @@ class BlockPool:
         blk = fb.pointer(ti.ij, (ensemble, self.NB))
         blk.dense(ti.kl, (2, capacity)).place(self.x, self.pid, self.keep)
         blk.dense(ti.k, 2).place(self.n)
-        blk.dense(ti.k, len(self.dirs)).place(self.cnt, self.off)
+        blk.dense(ti.k, self.ndirs).place(self.cnt, self.off)
         blk.place(self.fixed)
         self.blk = blk
         self.tree = fb.finalize()
@@ -280,7 +285,7 @@ class BlockPool:
     def nbytes(self) -> int:
         """Bytes of the active blocks (slots of both buffers, counts, scan offsets)."""
         slot = self.dim * np.dtype(numpy_dtype(self.real)).itemsize + 8 + 1
-        return self.active.size * (2 * self.capacity * slot + 4 * (3 + 2 * len(self.dirs)))
+        return self.active.size * (2 * self.capacity * slot + 4 * (3 + 2 * self.ndirs))
 
     def grown(self, capacity: int) -> "BlockPool":
         """This pool, or (when ``capacity`` exceeds its own) a new one with at least ``capacity``
@@ -366,6 +371,14 @@ class BlockPool:
         return canonical(x, pid, n)
 
     # -- the hybrid's interface (see the module docstring) ----------------------------------
+    @ti.func
+    def assume_active(self):
+        """Let the calling kernel reach the blocks without activating them (a write to a pointer
+        SNode otherwise checks for, and takes a lock to make, an active cell: 3.4× the cost of a
+        compaction in sphere3d). Every block a kernel of the hybrid touches is active, made so
+        by :meth:`fitted`; only :meth:`_touch` activates."""
+        ti.no_activate(self.x, self.pid, self.keep, self.n, self.cnt, self.off, self.fixed)
+
     @ti.func
     def units(self):
         """Units of the particle loop: the active blocks."""
@@ -456,15 +469,17 @@ class BlockPool:
         """Count the marked slots of buffer ``b`` per block and neighbour; at each target block an
         exclusive scan over its neighbours (in the fixed order of :attr:`dirs`) gives each source
         its first slot there. Sets ``n`` of the other buffer, ``fixed``, ``kept`` and ``need``."""
+        self.assume_active()
         nxt = 1 - b
         for u in range(self.listed[None]):
             _, U, lo, hi = self.unit(b, u)
-            for k in ti.static(range(len(self.dirs))):
-                self.cnt[U[0], U[1], k] = 0
+            c = ti.Vector.zero(ti.i32, self.ndirs)  # local counts: no atomics on the block's fields
             for p in range(lo, hi):
                 code = ti.cast(self.keep[U[0], U[1], b, p], ti.i32)
                 if code:
-                    self.cnt[U[0], U[1], code - 1] += 1
+                    c[code - 1] += 1
+            for k in ti.static(range(self.ndirs)):
+                self.cnt[U[0], U[1], k] = c[k]
         for e in range(self.ensemble):
             self.kept[e] = 0
         self.need[None] = 0
@@ -472,7 +487,7 @@ class BlockPool:
             e, T, _, _ = self.unit(b, u)
             t = self._coords(T[1])
             total = 0
-            for k in ti.static(range(len(self.dirs))):
+            for k in ti.static(range(self.ndirs)):
                 s = t
                 ok = True
                 for a in ti.static(range(self.dim)):
@@ -496,28 +511,31 @@ class BlockPool:
     @ti.kernel
     def _scatter(self, b: ti.i32):
         """Copy the marked slots of buffer ``b`` to the slots :meth:`_scan` gave them."""
+        self.assume_active()
         nxt = 1 - b
         for u in range(self.listed[None]):
             e, S, lo, hi = self.unit(b, u)
             s = self._coords(S[1])
+            T = ti.Vector.zero(ti.i32, self.ndirs)  # each neighbour's key, and the next slot there
+            j = ti.Vector.zero(ti.i32, self.ndirs)
+            for k in ti.static(range(self.ndirs)):
+                t = s
+                for a in ti.static(range(self.dim)):
+                    t[a] = (t[a] + self.dirs[k][a] + self.nb[a]) % self.nb[a]
+                T[k] = self._linear(t)
+                j[k] = self.off[e, S[1], k]
             for p in range(lo, hi):
                 code = ti.cast(self.keep[e, S[1], b, p], ti.i32)
                 if code:
                     k = code - 1
-                    t = s
-                    for c in ti.static(range(self.dim)):
-                        a = ti.static(self.dim - 1 - c)
-                        t[a] = (t[a] + k % 3 - 1 + self.nb[a]) % self.nb[a]
-                        k //= 3
-                    T = self._linear(t)
-                    j = self.off[e, S[1], code - 1]
-                    self.off[e, S[1], code - 1] = j + 1
-                    self.x[e, T, nxt, j] = self.x[e, S[1], b, p]
-                    self.pid[e, T, nxt, j] = self.pid[e, S[1], b, p]
+                    self.x[e, T[k], nxt, j[k]] = self.x[e, S[1], b, p]
+                    self.pid[e, T[k], nxt, j[k]] = self.pid[e, S[1], b, p]
+                    j[k] += 1
 
     @ti.kernel
     def truncate(self, b: ti.i32):
         """Drop what was appended to buffer ``b`` since the last compaction."""
+        self.assume_active()
         for u in range(self.listed[None]):
             e, U, _, _ = self.unit(b, u)
             self.n[e, U[1], b] = self.fixed[e, U[1]]
