@@ -30,6 +30,7 @@ from .grid import cell_of, numpy_dtype
 BLOCK = 256  # slots per compaction block: an exclusive scan over blocks replaces a contended atomic
 LAYOUTS = ("flat", "pointer")  # the scene key pool_layout
 SIDE = {1: 32, 2: 8, 3: 4}  # cells per axis of a pointer block, by dimension (benchmarks/RESULTS.md)
+CHUNK = 64  # slots per chunk of a pointer block's array: allocated as it fills, released at regrids
 
 
 def capacity(need: float) -> int:
@@ -236,6 +237,7 @@ class BlockPool:
     """
 
     def __init__(self, grid, ensemble: int, capacity: int, real):
+        capacity = -(-capacity // CHUNK) * CHUNK  # whole chunks
         self.grid, self.ensemble, self.capacity, self.real = grid, ensemble, capacity, real
         self.dim, self.cells = grid.dim, tuple(grid.cells)
         self.side = SIDE[self.dim]
@@ -254,7 +256,8 @@ class BlockPool:
         self.cnt = ti.field(ti.i32)  # particles marked for neighbour k, index (e, B, k)
         self.off = ti.field(ti.i32)  # their first slot in that neighbour, index (e, B, k)
         blk = fb.pointer(ti.ij, (ensemble, self.NB))
-        blk.dense(ti.kl, (2, capacity)).place(self.x, self.pid, self.keep)
+        self.chunks = blk.dense(ti.k, 2).pointer(ti.l, capacity // CHUNK)  # a block's slots, CHUNK at a time
+        self.chunks.dense(ti.l, CHUNK).place(self.x, self.pid, self.keep)
         blk.dense(ti.k, 2).place(self.n)
         blk.dense(ti.k, self.ndirs).place(self.cnt, self.off)
         blk.place(self.fixed)
@@ -283,9 +286,10 @@ class BlockPool:
 
     @property
     def nbytes(self) -> int:
-        """Bytes of the active blocks (slots of both buffers, counts, scan offsets)."""
+        """Bytes of the active blocks (counts, scan offsets, chunk pointers) and of their active chunks."""
         slot = self.dim * np.dtype(numpy_dtype(self.real)).itemsize + 8 + 1
-        return self.active.size * (2 * self.capacity * slot + 4 * (3 + 2 * self.ndirs))
+        block = 4 * (3 + 2 * self.ndirs) + 2 * (self.capacity // CHUNK) * 8
+        return self.active.size * block + self._active_chunks() * CHUNK * slot
 
     def grown(self, capacity: int) -> "BlockPool":
         """This pool, or (when ``capacity`` exceeds its own) a new one with at least ``capacity``
@@ -323,6 +327,7 @@ class BlockPool:
         if gone.size:
             self._drop(gone)
         self._set_list(np.intersect1d(self.active, keys).astype(np.int32))
+        self._trim()
 
     def compacted(self, b: int) -> "BlockPool":
         """The marked slots of buffer ``b`` moved, in order, to the front of their target blocks in
@@ -373,11 +378,11 @@ class BlockPool:
     # -- the hybrid's interface (see the module docstring) ----------------------------------
     @ti.func
     def assume_active(self):
-        """Let the calling kernel reach the blocks without activating them (a write to a pointer
-        SNode otherwise checks for, and takes a lock to make, an active cell: 3.4× the cost of a
-        compaction in sphere3d). Every block a kernel of the hybrid touches is active, made so
-        by :meth:`fitted`; only :meth:`_touch` activates."""
-        ti.no_activate(self.x, self.pid, self.keep, self.n, self.cnt, self.off, self.fixed)
+        """Let the calling kernel reach a block's own fields without activating it (a write to a
+        pointer SNode otherwise checks for an active cell first). Every block a kernel of the
+        hybrid touches is active, made so by :meth:`fitted`; only :meth:`_touch` activates
+        blocks. Chunks of slots are activated by the writes that fill them."""
+        ti.no_activate(self.n, self.cnt, self.off, self.fixed)
 
     @ti.func
     def units(self):
@@ -463,6 +468,22 @@ class BlockPool:
     def _drop(self, keys: ti.types.ndarray()):
         for i in range(keys.shape[0]):
             ti.deactivate(self.blk, [keys[i] // self.NB, keys[i] % self.NB])
+
+    @ti.kernel
+    def _trim(self):
+        """Release the chunks past the occupied slots of each active block's two buffers."""
+        for u in range(self.listed[None]):
+            e, U, _, _ = self.unit(0, u)
+            for b in ti.static(range(2)):
+                for c in range((self.n[e, U[1], b] + CHUNK - 1) // CHUNK, self.capacity // CHUNK):
+                    ti.deactivate(self.chunks, [e, U[1], b, c])
+
+    @ti.kernel
+    def _active_chunks(self) -> ti.i32:
+        c = 0
+        for _ in ti.grouped(self.chunks):
+            c += 1
+        return c
 
     @ti.kernel
     def _scan(self, b: ti.i32):
