@@ -109,3 +109,9 @@ def test_pointer_pool_moves_between_blocks_and_grows(src, dst):
     keep[:, dst[0], dst[1]] = True
     p.retain(keep)
     assert p.active.size == E and np.array_equal(p.occupied(1)[2], n1)
+
+
+def test_pointer_pool_refuses_what_taichi_cannot_hold():
+    cells = np.ones((1, 24, 24), dtype=bool)
+    with pytest.raises(OverflowError, match="use pool_layout = 'flat'"):
+        BlockPool(_grid([24, 24]), 1, 4, ti.f64).fitted(np.full((1, 24, 24), 1e6), cells)

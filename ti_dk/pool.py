@@ -31,6 +31,10 @@ BLOCK = 256  # slots per compaction block: an exclusive scan over blocks replace
 LAYOUTS = ("flat", "pointer")  # the scene key pool_layout
 SIDE = {1: 32, 2: 8, 3: 4}  # cells per axis of a pointer block, by dimension (benchmarks/RESULTS.md)
 CHUNK = 64  # slots per chunk of a pointer block's array: allocated as it fills, released at regrids
+# bytes of particle chunks a pointer pool may plan for (both buffers): Taichi 1.7.4's CPU runtime
+# dies with a segfault once its sparse nodes hold about 1.5-2 GiB (sphere3d at 200^3; alone: 60,000
+# pointer blocks of 14 chunks of 64 slots), so a larger run is refused with a message instead
+SPARSE_MAX = 1 << 30
 
 
 def capacity(need: float) -> int:
@@ -247,6 +251,7 @@ class BlockPool:
         self.periodic = tuple(lo == 0 for lo, _ in grid.boundary)  # grid.PERIODIC
         self.dirs = list(itertools.product((-1, 0, 1), repeat=self.dim))  # neighbour blocks, code = index
         self.ndirs = len(self.dirs)
+        self.slot_bytes = self.dim * np.dtype(numpy_dtype(real)).itemsize + 8 + 1  # x, pid, keep
         fb = ti.FieldsBuilder()
         self.x = ti.Vector.field(self.dim, real)  # positions [length], index (e, B, buffer, slot)
         self.pid = ti.Vector.field(2, ti.u32)  # identity: two words keying the particle's random numbers
@@ -287,9 +292,8 @@ class BlockPool:
     @property
     def nbytes(self) -> int:
         """Bytes of the active blocks (counts, scan offsets, chunk pointers) and of their active chunks."""
-        slot = self.dim * np.dtype(numpy_dtype(self.real)).itemsize + 8 + 1
         block = 4 * (3 + 2 * self.ndirs) + 2 * (self.capacity // CHUNK) * 8
-        return self.active.size * block + self._active_chunks() * CHUNK * slot
+        return self.active.size * block + self._active_chunks() * CHUNK * self.slot_bytes
 
     def grown(self, capacity: int) -> "BlockPool":
         """This pool, or (when ``capacity`` exceeds its own) a new one with at least ``capacity``
@@ -310,6 +314,11 @@ class BlockPool:
         pad = [(0, 0)] + [(0, b * self.side - m) for b, m in zip(self.nb, self.cells)]
         c = np.pad(need, pad).reshape(self.ensemble, *[v for b in self.nb for v in (b, self.side)])
         most = float(c.sum(axis=tuple(range(2, 2 + 2 * self.dim, 2))).max()) if need.size else 0.0
+        slots = 2 * (float(need.sum()) + CHUNK * keys.size)  # both buffers, a partial chunk per block
+        if slots * self.slot_bytes > SPARSE_MAX:
+            raise OverflowError(
+                f"pool_layout = 'pointer' would hold about {slots * self.slot_bytes / 2**30:.2g} GiB of particles; "
+                f"Taichi's CPU runtime crashes on sparse data beyond about 1.5 GiB: use pool_layout = 'flat'")
         new = self.grown(capacity(most))
         new._activate(keys)
         return new
@@ -476,7 +485,8 @@ class BlockPool:
             e, U, _, _ = self.unit(0, u)
             for b in ti.static(range(2)):
                 for c in range((self.n[e, U[1], b] + CHUNK - 1) // CHUNK, self.capacity // CHUNK):
-                    ti.deactivate(self.chunks, [e, U[1], b, c])
+                    # explicit casts: without them Taichi warns "Field index not int32" in 3D
+                    ti.deactivate(self.chunks, [ti.i32(e), ti.i32(U[1]), b, ti.i32(c)])
 
     @ti.kernel
     def _active_chunks(self) -> ti.i32:
