@@ -6,9 +6,11 @@ Two layouts (scene key ``pool_layout``; the hybrid takes either, the particle me
 - :class:`ParticlePool` (``flat``): one array of slots per member, sized for the member's whole
   region; memory follows the particles of the busiest member.
 - :class:`BlockPool` (``pointer``): a ``ti.root.pointer`` over blocks of cells, each active block
-  holding a dense array of slots; only the blocks of the region and its ghost ring are active,
-  so memory follows the region, not the grid. Particles move between blocks by per-block counts
-  and an exclusive scan (no ``dynamic`` appends: ``benchmarks/bench_pool.py``).
+  holding its slots in dense chunks; only the blocks of the region and its ghost ring are active,
+  so memory follows the region's particles, not the grid or the busiest member. Particles move
+  between blocks by per-block counts and an exclusive scan (no ``dynamic`` appends, which
+  contend: ``benchmarks/bench_pool.py``). Slower per step on 2 CPU cores, smaller in memory
+  (``benchmarks/RESULTS.md``).
 
 The hybrid reaches a particle through the same ti.funcs in both: a loop over :meth:`units`
 (a member's chunk of slots, or a block), :meth:`unit` (its member, key and slot range),
@@ -29,7 +31,7 @@ from .grid import cell_of, numpy_dtype
 
 BLOCK = 256  # slots per compaction block: an exclusive scan over blocks replaces a contended atomic
 LAYOUTS = ("flat", "pointer")  # the scene key pool_layout
-SIDE = {1: 32, 2: 8, 3: 4}  # cells per axis of a pointer block, by dimension (benchmarks/RESULTS.md)
+SIDE = {1: 32, 2: 8, 3: 8}  # cells per axis of a pointer block, by dimension (benchmarks/RESULTS.md)
 CHUNK = 64  # slots per chunk of a pointer block's array: allocated as it fills, released at regrids
 # bytes of particle chunks a pointer pool may plan for (both buffers): Taichi 1.7.4's CPU runtime
 # dies with a segfault once its sparse nodes hold about 1.5-2 GiB (sphere3d at 200^3; alone: 60,000
@@ -232,8 +234,12 @@ class BlockPool:
     """The ``pointer`` layout: a ``ti.root.pointer`` over (member, block of :data:`SIDE` cells per
     axis), each active block holding two buffers of ``capacity`` slots; block ``B`` of member ``e``
     has key ``(e, B)`` (``B``: C-order index of the block) and holds the particles of its cells.
+    A buffer's slots are dense arrays of :data:`CHUNK` slots under a second pointer, allocated as
+    they fill: a dense array of ``capacity`` slots per block made every active block as large
+    as the fullest (sphere3d at 64³: 470 MB of slots for 1.2 M particles, against 84 MB).
 
-    Active blocks are those :meth:`fitted` asked for; :meth:`retain` deactivates the rest. A
+    Active blocks are those :meth:`fitted` asked for; :meth:`retain` deactivates the rest and
+    releases the chunks past each block's particles. A
     particle moves at most one cell per step, so :meth:`mark` records where it goes as one of
     the ``3^dim`` neighbour blocks, and :meth:`compacted` moves the marked particles by per-block
     counts, an exclusive scan at each target block over its neighbours in a fixed order, and a
@@ -275,12 +281,16 @@ class BlockPool:
         self.active = np.zeros(0, dtype=np.int32)  # the listed keys on the host, ascending
 
     # -- host -----------------------------------------------------------------------------
+    def _per_block(self, a: np.ndarray, reduce) -> np.ndarray:
+        """``reduce`` (``np.any``, ``np.sum``) of ``(ensemble, *cells)`` values over each block's
+        cells: ``(ensemble, NB)``."""
+        pad = [(0, 0)] + [(0, b * self.side - m) for b, m in zip(self.nb, self.cells)]
+        c = np.pad(a, pad).reshape(self.ensemble, *[v for b in self.nb for v in (b, self.side)])
+        return reduce(c, axis=tuple(range(2, 2 + 2 * self.dim, 2))).reshape(self.ensemble, self.NB)
+
     def _keys(self, cells: np.ndarray) -> np.ndarray:
         """Keys of the blocks holding any of ``cells`` (``(ensemble, *cells)`` booleans), ascending."""
-        pad = [(0, 0)] + [(0, b * self.side - m) for b, m in zip(self.nb, self.cells)]
-        c = np.pad(cells, pad).reshape(self.ensemble, *[v for b in self.nb for v in (b, self.side)])
-        hit = c.any(axis=tuple(range(2, 2 + 2 * self.dim, 2))).reshape(self.ensemble, self.NB)
-        return np.flatnonzero(hit).astype(np.int32)
+        return np.flatnonzero(self._per_block(cells, np.any)).astype(np.int32)
 
     def _set_list(self, keys: np.ndarray) -> None:
         self.active = keys
@@ -311,9 +321,7 @@ class BlockPool:
         """A pool whose blocks holding ``cells`` (``(ensemble, *cells)`` booleans) are active, and
         with room in every block for ``need`` (``(ensemble, *cells)``: slots each cell may ask for)."""
         keys = self._keys(cells)
-        pad = [(0, 0)] + [(0, b * self.side - m) for b, m in zip(self.nb, self.cells)]
-        c = np.pad(need, pad).reshape(self.ensemble, *[v for b in self.nb for v in (b, self.side)])
-        most = float(c.sum(axis=tuple(range(2, 2 + 2 * self.dim, 2))).max()) if need.size else 0.0
+        most = float(self._per_block(need, np.sum).max()) if need.size else 0.0
         slots = 2 * (float(need.sum()) + CHUNK * keys.size)  # both buffers, a partial chunk per block
         if slots * self.slot_bytes > SPARSE_MAX:
             raise OverflowError(
