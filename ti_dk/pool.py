@@ -325,8 +325,9 @@ class BlockPool:
         slots = 2 * (float(need.sum()) + CHUNK * keys.size)  # both buffers, a partial chunk per block
         if slots * self.slot_bytes > SPARSE_MAX:
             raise OverflowError(
-                f"pool_layout = 'pointer' would hold about {slots * self.slot_bytes / 2**30:.2g} GiB of particles; "
-                f"Taichi's CPU runtime crashes on sparse data beyond about 1.5 GiB: use pool_layout = 'flat'")
+                f"pool_layout = 'pointer' would plan for {slots * self.slot_bytes / 2**30:.2g} GiB of particles, more "
+                f"than the {SPARSE_MAX / 2**30:g} GiB it allows (Taichi's CPU runtime crashes on sparse data of about "
+                "1.5 GiB): use pool_layout = 'flat'")
         new = self.grown(capacity(most))
         new._activate(keys)
         return new
