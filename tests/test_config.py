@@ -48,6 +48,7 @@ def test_boundaries_per_axis_and_side():
         ("void1d", {"boundary": [["periodic", "neumann"]]}, "periodic on one side only"),
         ("void1d", {"t_end": -1.0}, "t_end = -1.0"),
         ("void1d", {"precision": "f16"}, "precision = 'f16'"),
+        ("void1d", {"pool_layout": "sparse"}, "pool_layout = 'sparse': use one of flat, pointer"),
     ],
 )
 def test_bad_input_says_what_to_change(name, overrides, message):

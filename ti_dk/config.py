@@ -41,6 +41,7 @@ import numpy as np  # noqa: E402
 
 from . import initial  # noqa: E402
 from .grid import Geometry, Grid  # noqa: E402
+from .pool import LAYOUTS as POOL_LAYOUTS  # noqa: E402
 from .pool import capacity  # noqa: E402
 from .regrid import RegridParams  # noqa: E402
 from .rng import PURPOSE_BITS  # noqa: E402
@@ -209,6 +210,8 @@ class HybridKeys:
     max_box: int = key("int", "largest box side in cells", _RG.max_box, lo=1)
     regrid_floor: float = key("real", "an uncovered cell below this times threshold before a step: cover all "
                               "below threshold (0: scheduled regrids only)", _RG.floor, lo=0.0, hi=1.0)
+    pool_layout: str = key("choice", "particle storage: flat (slots per member) or pointer (blocks of cells, "
+                           "only where the region is)", "flat", choices=POOL_LAYOUTS)
 
     @property
     def regrid(self) -> RegridParams:

@@ -117,8 +117,8 @@ class Sampler:
     @ti.func
     def sample(self, pool: ti.template(), buf, e, C, lam, step, birth, tilt_on):
         """Append ℓ particles plus one with probability α (``lam = ℓ + α``) to cell ``C`` (paper §3),
-        placed by :meth:`tilt` (uniform where ``tilt_on`` is 0), in buffer ``buf`` of member ``e``;
-        returns how many."""
+        placed by :meth:`tilt` (uniform where ``tilt_on`` is 0), in buffer ``buf`` of member ``e``
+        (the pool's unit for that cell: :mod:`pool`); returns how many."""
         lin = ti.u32(0)
         for a in ti.static(range(self.dim)):
             lin = lin * ti.u32(self.region.padded[a]) + ti.u32(C[a] + 1)
@@ -128,7 +128,8 @@ class Sampler:
         if m >= (1 << self.id_bits):
             ti.atomic_max(self.need[None], TOO_MANY)
             m = 0
-        base = ti.atomic_add(pool.n[buf, e], m)
+        U = pool.unit_of(e, C)
+        base = pool.append(buf, U, m)
         ti.atomic_max(self.need[None], base + m)
         tilt = ti.Vector.zero(self.real, self.dim)
         if m > 0 and tilt_on and self.region.inside(C):
@@ -137,8 +138,9 @@ class Sampler:
             if base + k < pool.capacity:
                 id0 = (lin << ti.u32(self.id_bits)) | ti.u32(k)
                 r = rng.philox4x32(ti.math.uvec4(id0, ti.u32(step), self.walker.member(e), ti.u32(rng.SAMPLE_POSITION)), key)
-                pool.x[buf, e, base + k] = self.walker.in_cell(C, r, tilt)
-                pool.pid[buf, e, base + k] = ti.math.uvec2(id0, ti.u32(birth))
+                I = pool.index(buf, U, base + k)
+                pool.x[I] = self.walker.in_cell(C, r, tilt)
+                pool.pid[I] = ti.math.uvec2(id0, ti.u32(birth))
         return m
 
     # -- kernels --------------------------------------------------------------------------
@@ -189,12 +191,12 @@ class Sampler:
                 self.spde.q[J] = self.real(ti.cast(scratch[J], ti.f64) / vol)
                 scratch[J] = 0
             covered[J] = fresh[J]
-        pool.find_top(cur)
-        for i in range(self.spde.ensemble * pool.top[None]):  # the occupied slots, not the capacity
-            e, p = pool.slot(i)
-            if p < pool.n[cur, e]:
+        for u in range(pool.units()):
+            e, U, lo, hi = pool.unit(cur, u)
+            for p in range(lo, hi):
+                I = pool.index(cur, U, p)
                 D = ti.Vector.zero(ti.i32, self.dim + 1)
                 D[0] = e
                 for a in ti.static(range(self.dim)):
-                    D[a + 1] = cell_of(pool.x[cur, e, p][a], self.real(self.grid.dx[a]), self.n[a])
-                pool.keep[e, p] = covered[D]
+                    D[a + 1] = cell_of(pool.x[I][a], self.real(self.grid.dx[a]), self.n[a])
+                pool.mark(I, covered[D] != 0, D)

@@ -63,21 +63,19 @@ class Coupling:
     def walk(self, pool: ti.template(), cur: ti.i32, step: ti.i32, last: ti.i32):
         """Step 3 (one particle sub-step): walk, mark to keep what ends in the region, add to ΔN;
         on the ``last`` sub-step count the particles per covered cell."""
-        pool.find_top(cur)
-        # over the occupied slots only: the pool is sized for regrids (≈ 2× the particles), and
-        # a loop over its whole capacity spent ≈ 10 % of the walk testing empty slots
-        for i in range(self.spde.ensemble * pool.top[None]):
-            e, p = pool.slot(i)
-            if p < pool.n[cur, e]:
-                ident = pool.pid[cur, e, p]
-                y, alive, clamped = self.walker.move(pool.x[cur, e, p], e, ident[0], ident[1], ti.u32(step))
+        for u in range(pool.units()):
+            e, U, lo, hi = pool.unit(cur, u)
+            for p in range(lo, hi):
+                I = pool.index(cur, U, p)
+                ident = pool.pid[I]
+                y, alive, clamped = self.walker.move(pool.x[I], e, ident[0], ident[1], ti.u32(step))
                 if clamped:  # rare (p ≈ erfc(Δx/√(2Δt)) per axis): no atomic on the shared counter otherwise
                     self.clamped[None] += clamped
                 ghost = ident[1] == ti.u32(step + 1)
                 D = self._cell(e, y)
                 keep = alive and self.region.covered[D] != 0
-                pool.x[cur, e, p] = y
-                pool.keep[e, p] = ti.u8(keep)
+                pool.x[I] = y
+                pool.mark(I, keep, D)
                 if keep:
                     counted = True
                     if ghost:
@@ -109,18 +107,20 @@ class Coupling:
 
     @ti.kernel
     def sort(self, pool: ti.template(), b: ti.i32):
-        """Compact buffer ``b`` into the other like :meth:`pool.ParticlePool.compact` (the slots
-        marked to ``keep``), but in cell order (a counting sort: counts per cell in ``count``, a
+        """Compact buffer ``b`` of a flat pool (:class:`pool.ParticlePool`) into the other like
+        its ``compact`` (the marked slots), but in cell order (a counting sort: counts per cell in ``count``, a
         scan over rows of cells, a scatter). A particle's random numbers are keyed on its identity,
         so the order changes no result; it keeps the walk's cell lookups and ``count`` updates
         local, where the order left by many steps of compaction and appended ghosts scatters them
-        over the grid (measured in sphere3d: the walk 285 → 193 ms a step)."""
+        over the grid (measured in sphere3d at step 200: the walk 296–365 → 177–208 ms a step).
+        A pointer pool keeps its particles by block of cells and needs no sort."""
         E, L, rows = ti.static(self.spde.ensemble, self.n[-1], math.prod(self.n[:-1]))
-        pool.find_top(b)
-        for i in range(E * pool.top[None]):
-            e, p = pool.slot(i)
-            if p < pool.n[b, e] and pool.keep[e, p]:
-                self.count[self._cell(e, pool.x[b, e, p])] += 1
+        for u in range(pool.units()):
+            e, U, lo, hi = pool.unit(b, u)
+            for p in range(lo, hi):
+                I = pool.index(b, U, p)
+                if pool.marked(I):
+                    self.count[self._cell(e, pool.x[I])] += 1
         # rows of cells along the last axis, member first. (Taichi 1.7.4: reaching a row's cells
         # through Region.unflatten of a flat row index here failed to compile, "Assertion failure:
         # load_src->is<MatrixPtrStmt>() ..." in store_to_load_forwarding; a grouped ndrange works.)
@@ -144,12 +144,14 @@ class Coupling:
                 c = self.count[J]
                 self.count[J] = total
                 total += c
-        for i in range(E * pool.top[None]):
-            e, p = pool.slot(i)
-            if p < pool.n[b, e] and pool.keep[e, p]:
-                k = ti.atomic_add(self.count[self._cell(e, pool.x[b, e, p])], 1)
-                pool.x[1 - b, e, k] = pool.x[b, e, p]
-                pool.pid[1 - b, e, k] = pool.pid[b, e, p]
+        for u in range(pool.units()):
+            e, U, lo, hi = pool.unit(b, u)
+            for p in range(lo, hi):
+                I = pool.index(b, U, p)
+                if pool.marked(I):
+                    K = pool.index(1 - b, U, ti.atomic_add(self.count[self._cell(e, pool.x[I])], 1))
+                    pool.x[K] = pool.x[I]
+                    pool.pid[K] = pool.pid[I]
         for J in ti.grouped(self.count):
             self.count[J] = 0
 
@@ -171,11 +173,12 @@ class Coupling:
                 cap = ti.cast(ti.max(room, 0.0), ti.i32)
                 self.cap[J] = cap
                 self.dN[J] -= ti.min(ti.cast(ti.math.popcnt(self.entered[J]), ti.i32), cap)
-        for i in range(self.spde.ensemble * pool.top[None]):  # the occupied slots (pool.top: set by walk)
-            e, p = pool.slot(i)
-            if p < pool.n[cur, e] and pool.keep[e, p]:
-                ident = pool.pid[cur, e, p]
-                if ident[1] == ti.u32(step + 1):
+        for u in range(pool.units()):
+            e, U, lo, hi = pool.unit(cur, u)
+            for p in range(lo, hi):
+                I = pool.index(cur, U, p)
+                ident = pool.pid[I]
+                if pool.marked(I) and ident[1] == ti.u32(step + 1):
                     O = self.sampler.origin(ident[0])
                     k = self.sampler.index(ident[0])
                     if self.region.inside(O) and k < 64:
@@ -183,9 +186,9 @@ class Coupling:
                         below = self.entered[J] & ((ti.u64(1) << ti.cast(k, ti.u64)) - ti.u64(1))
                         if ti.cast(ti.math.popcnt(below), ti.i32) < self.cap[J]:
                             if last:
-                                self.count[self._cell(e, pool.x[cur, e, p])] += 1
+                                self.count[self._cell(e, pool.x[I])] += 1
                         else:
-                            pool.keep[e, p] = ti.u8(0)
+                            pool.unmark(I)
         for i in range(n_ring):
             J, inside = self.region.ring_cell(i)
             if inside:
@@ -284,7 +287,7 @@ class HybridSolver(RegionSolver):
     """
 
     def __init__(self, spde: SPDESolver, params: regrid.RegridParams, regrid_interval: int,
-                 ghost_profile: str = "mean", substeps: int = 1):
+                 ghost_profile: str = "mean", substeps: int = 1, pool_layout: str = "flat"):
         grid = spde.grid
         self.profile, self.substeps = ghost_profile, substeps
         self.spde, self.params, self.regrid_interval = spde, params, regrid_interval
@@ -294,7 +297,7 @@ class HybridSolver(RegionSolver):
         self.regions = Region(grid, self.ensemble, params)
         self.sampler = Sampler(spde, self.regions, self.walker, ghost_profile, substeps)
         self.coupling = Coupling(spde, self.regions, self.sampler, self.walker)
-        self.pool = pool.ParticlePool(self.ensemble, 1, self.dim, self.real)
+        self.pool = pool.make(pool_layout, grid, self.ensemble, self.real)  # flat or pointer (pool.LAYOUTS)
         self.cur = 0  # the pool buffer holding the particles between steps
         self.regrids: list[dict] = []  # one record per regrid
         self._change = 0.0  # created − removed at this step's regrid
@@ -368,9 +371,13 @@ class HybridSolver(RegionSolver):
                 self._fill_ghosts(n * k + s, s / k, 1)
             c.walk(self.pool, self.cur, n * k + s, int(s == k - 1))
             c.cap_entries(self.pool, self.cur, n * k + s, int(s == k - 1), self.n_ring)
-            self.pool.compact(self.cur)
-            self.cur = 1 - self.cur
+            self._compact()
         c.sync(self.n_cover, self.n_ring)
+
+    def _compact(self) -> None:
+        """Keep the marked particles, in the other buffer (the pointer layout may need a larger pool)."""
+        self.pool = self.pool.compacted(self.cur)
+        self.cur = 1 - self.cur
 
     def _tilt_on(self, n: int) -> int:
         """Whether particles sampled at step ``n`` are tilted: not at the start with ``mean``, where
@@ -433,26 +440,29 @@ class HybridSolver(RegionSolver):
         synchronisation brings the diagnostics up to date: no full-grid pass here. With ``sort``
         (the scheduled regrids) the kept particles are put in cell order (:meth:`Coupling.sort`)."""
         masks = np.broadcast_to(masks, (self.ensemble, *self.n))
-        self.pool = self.pool.grown(self._estimate(masks, ppc))
+        near = self.regions.near(masks)
+        self.pool = self.pool.fitted(self._estimate(masks, near, ppc), near)
         self.regions.fresh.from_numpy(masks.astype(np.uint8))
         self.sampler.cover(self.pool, self.cur, n * self.substeps, self._tilt_on(n), self.coupling.count)
-        if sort:
+        if sort and not self.pool.cell_ordered:
             self.coupling.sort(self.pool, self.cur)
+            self.cur = 1 - self.cur
         else:
-            self.pool.compact(self.cur)
-        self.cur = 1 - self.cur
+            self._compact()
+        self.pool.retain(self.regions.near(masks))  # the new region and its ring (covered = masks now)
         self.regions.lists()
         if self.sampler.check_need() > self.pool.capacity:  # the estimate bounds it; kept as a guard
             raise RuntimeError("particle pool estimate too small at a regrid")
         self._change += self.sampler.created[None] - self.sampler.removed[None]
 
-    def _estimate(self, masks: np.ndarray, ppc: np.ndarray) -> int:
-        """Slots a member can need after a regrid: its region and ghost ring full, with the
-        headroom of :func:`pool.capacity`."""
-        axes = tuple(range(1, self.dim + 1))
-        inside = np.ceil(np.maximum(ppc, 0) * self.regions.near(masks)).sum(axis=axes)
-        walls = self.grid.reservoir_ppc_max * 3 ** (self.dim - 1) * masks.sum(axis=axes) if self.grid.has_dirichlet else 0
-        return pool.capacity(float(np.max(inside + walls)) if self.ensemble else 0.0)
+    def _estimate(self, masks: np.ndarray, near: np.ndarray, ppc: np.ndarray) -> np.ndarray:
+        """Slots each cell can ask for around a regrid (``(ensemble, *cells)``; the pool adds the
+        headroom of :func:`pool.capacity`): the region and its ghost ring full, and a covered
+        cell's reservoir ghosts."""
+        need = np.ceil(np.maximum(ppc, 0) * near)
+        if self.grid.has_dirichlet:
+            need += self.grid.reservoir_ppc_max * 3 ** (self.dim - 1) * masks
+        return need
 
     def state(self) -> dict[str, np.ndarray]:
         """SPDE fields, region, boxes, regrid log and the particles (compacted, with their ids)."""
@@ -466,12 +476,9 @@ class HybridSolver(RegionSolver):
 
     def load_state(self, st: dict[str, np.ndarray]) -> None:
         self.spde.load_state({k[5:]: v for k, v in st.items() if k.startswith("spde_")})
-        n, x = st["n_real"], st["x"]
-        self.pool = self.pool.grown(pool.capacity(x.shape[1]))
-        self.pool.load(x[None], st["pid"][None], np.stack([n, np.zeros_like(n)]))
-        self.pool.kept.from_numpy(n.astype(np.int32))
-        self.cur = 0
         self.regions.load_state(st)
+        self.pool = self.pool.restored(st["x"], st["pid"], st["n_real"], self.regions.near(self.regions.mask()))
+        self.cur = 0
         self.regrids = [{k: st[f"regrid_{k}"][i].item() for k in REGRID_LOG} for i in range(len(st["regrid_step"]))]
 
     def density(self) -> np.ndarray:

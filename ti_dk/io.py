@@ -278,8 +278,12 @@ def scene_json(scene) -> str:
 
 
 def same_scene(h5, scene) -> bool:
-    """Whether an HDF5 file was written for exactly these scene settings."""
-    return json.loads(h5.attrs["scene"]) == json.loads(scene_json(scene))
+    """Whether an HDF5 file was written for these scene settings, up to ``pool_layout`` (where the
+    particles are stored changes no bit of a run, so either layout continues the other's files)."""
+    ours, theirs = json.loads(scene_json(scene)), json.loads(h5.attrs["scene"])
+    for d in (ours, theirs):
+        d.get("hybrid", {}).pop("pool_layout", None)
+    return ours == theirs
 
 
 def write_group(f, name: str, table: dict) -> None:
