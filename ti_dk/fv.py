@@ -62,7 +62,7 @@ class SPDESolver(Solver):
         self.flux = ti.Vector.field(self.dim, real, shape=(ensemble, *faces))
         if gaussian:  # √max(q̄, 0) of every cell, shared by all members [√(particles / volume)]
             self.root = ti.field(real, shape=(1, *self.n))
-        self.root_reservoir = tuple(tuple(math.sqrt(max(r, 0.0)) for r in side) for side in grid.reservoir)
+            self.root_reservoir = tuple(tuple(math.sqrt(max(r, 0.0)) for r in side) for side in grid.reservoir)
         if self.track_mean:
             self.qbar = ti.field(real, shape=(1, *self.n))  # deterministic density q̄ (eq. 10) [particles / volume]
             self.flux_bar = ti.Vector.field(self.dim, real, shape=(1, *faces))  # ½∇q̄ on faces [particles / (area · time)]

@@ -79,6 +79,19 @@ def cell_of(x, h, n):
     return ti.min(ti.max(ti.cast(ti.floor(x / h), ti.i32), 0), n - 1)
 
 
+@ti.func
+def exclusive_scan(a: ti.template(), e, n):
+    """Replace ``a[e, 0:n]`` by its exclusive prefix sums, serially, and return their total: the
+    middle pass of every count–scan–scatter (pool compaction, the region's cell lists, the
+    particles' cell-order sort)."""
+    total = 0
+    for k in range(n):
+        c = a[e, k]
+        a[e, k] = total
+        total += c
+    return total
+
+
 INTERIOR = -1  # face_kind of a face that is not on the boundary
 
 

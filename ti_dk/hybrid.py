@@ -9,7 +9,7 @@ import taichi as ti
 from . import pool, regrid
 from .fv import SPDESolver
 from .ghosts import Sampler
-from .grid import DIRICHLET, across, cell_of
+from .grid import DIRICHLET, across, cell_of, exclusive_scan
 from .particles import Walker
 from .region import Region
 from .solver import RegionSolver
@@ -35,7 +35,7 @@ class Coupling:
         E, n = spde.ensemble, spde.n
         self.count = ti.field(ti.i32, shape=(E, *n))  # particles ending the walk in each covered cell
         self.dN = ti.field(ti.i32, shape=(E, *n))  # ΔN: net particles the region gave each uncovered cell
-        self.row = ti.field(ti.i32, shape=E * math.prod(n[:-1]))  # first target slot of each row of cells (sort)
+        self.row = ti.field(ti.i32, shape=(E, math.prod(n[:-1])))  # first target slot of each member's rows of cells (sort)
         self.entered = ti.field(ti.u64, shape=(E, *n))  # bit k: ghost k of this cell walked into the region
         self.cap = ti.field(ti.i32, shape=(E, *n))  # most ghosts of this cell that may enter this sub-step
         self.clamped = ti.field(ti.i64, shape=())  # axis steps clamped to ±Δx in the last walk
@@ -99,11 +99,11 @@ class Coupling:
 
     @ti.func
     def _row(self, R):
-        """The flat index of row ``R`` (member, then the cell index without its last axis)."""
-        r = R[0]
+        """The index in :attr:`row` of row ``R`` (member, then the cell index without its last axis)."""
+        r = 0
         for a in ti.static(range(1, self.dim)):
             r = r * self.n[a - 1] + R[a]
-        return r
+        return ti.Vector([R[0], r])
 
     @ti.kernel
     def sort(self, pool: ti.template(), b: ti.i32):
@@ -130,11 +130,7 @@ class Coupling:
                 c += self.count[ti.Vector([R[a] for a in ti.static(range(self.dim))] + [j])]
             self.row[self._row(R)] = c
         for e in range(E):  # the scan over a member's rows, serial
-            total = 0
-            for k in range(rows):
-                c = self.row[e * rows + k]
-                self.row[e * rows + k] = total
-                total += c
+            total = exclusive_scan(self.row, e, rows)
             pool.n[1 - b, e] = total
             pool.kept[e] = total
         for R in ti.grouped(ti.ndrange(E, *self.n[:-1])):  # count becomes each cell's next target slot

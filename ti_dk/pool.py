@@ -27,7 +27,7 @@ import math
 import numpy as np
 import taichi as ti
 
-from .grid import cell_of, numpy_dtype
+from .grid import cell_of, exclusive_scan, numpy_dtype
 
 BLOCK = 256  # slots per compaction block: an exclusive scan over blocks replaces a contended atomic
 LAYOUTS = ("flat", "pointer")  # the scene key pool_layout
@@ -207,11 +207,7 @@ class ParticlePool:
                 c += ti.cast(self.keep[e, p], ti.i32)
             self.offset[e, k] = c
         for e in range(self.ensemble):
-            total = 0
-            for k in range(self.blocks):
-                c = self.offset[e, k]
-                self.offset[e, k] = total
-                total += c
+            total = exclusive_scan(self.offset, e, self.blocks)
             self.n[nxt, e] = total
             self.kept[e] = total
         for e, k in ti.ndrange(self.ensemble, self.blocks):

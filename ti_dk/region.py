@@ -12,7 +12,7 @@ import numpy as np
 import taichi as ti
 
 from . import regrid
-from .grid import DIRICHLET, PERIODIC, Grid, across
+from .grid import DIRICHLET, PERIODIC, Grid, across, exclusive_scan
 
 
 @ti.data_oriented
@@ -38,7 +38,7 @@ class Region:
         self.ring = ti.field(ti.u8, shape=(E, *self.padded))  # 1 on ghost cells (padded index = cell + 1)
         self.ring_list = ti.field(ti.i32, shape=E * math.prod(self.padded))  # flat indices of ghost cells
         self.cover_list = ti.field(ti.i32, shape=E * math.prod(n))  # flat indices of covered cells
-        self.row = ti.field(ti.i32, shape=E * math.prod(self.padded[:-1]))  # list entries per row (last axis)
+        self.row = ti.field(ti.i32, shape=(1, E * math.prod(self.padded[:-1])))  # list entries per row (last axis)
         self.listed = ti.field(ti.i32, shape=())  # length of the list built last
         self.n_ring, self.n_cover = 0, 0  # lengths of the two lists
         self.boxes: list[list[regrid.Box]] = [[] for _ in range(E)]  # each member's region
@@ -202,18 +202,13 @@ class Region:
             for j in range(L):
                 J[last] = j
                 c += ti.cast(flags[J] != 0, ti.i32)
-            self.row[r] = c
+            self.row[0, r] = c
         for _ in range(1):  # the scan, serial
-            total = 0
-            for r in range(rows):
-                c = self.row[r]
-                self.row[r] = total
-                total += c
-            self.listed[None] = total
+            self.listed[None] = exclusive_scan(self.row, 0, rows)
         for r in range(rows):
             R = self.unflatten(r, ti.static(flags.shape[:-1]))
             J = ti.Vector([R[b] for b in ti.static(range(last))] + [0])
-            k = self.row[r]
+            k = self.row[0, r]
             for j in range(L):
                 J[last] = j
                 if flags[J] != 0:
