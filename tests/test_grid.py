@@ -4,7 +4,7 @@ import pytest
 import taichi as ti
 
 from ti_dk import load_scene
-from ti_dk.grid import DIRICHLET, INTERIOR, NEUMANN, PERIODIC, Grid, across, cell_of, face_kind, numpy_dtype
+from ti_dk.grid import DIRICHLET, INTERIOR, NEUMANN, PERIODIC, Grid, across, cell_of, exclusive_scan, face_kind, numpy_dtype
 
 
 def test_geometry_of_an_anisotropic_2d_grid():
@@ -90,3 +90,20 @@ def test_across_and_face_kind_under_every_boundary():
         out = np.zeros(len(want), dtype=np.int32)
         f.kinds(a, out)
         assert out.tolist() == want
+
+
+def test_exclusive_scan_of_one_row_leaves_the_others():
+    counts = np.random.default_rng(1).integers(0, 9, size=(3, 17)).astype(np.int32)
+    a = ti.field(ti.i32, shape=counts.shape)
+    a.from_numpy(counts)
+    total = ti.field(ti.i32, shape=())
+
+    @ti.kernel
+    def scan(e: ti.i32, n: ti.i32):
+        for _ in range(1):
+            total[None] = exclusive_scan(a, e, n)
+
+    scan(1, 12)  # row 1, its first 12 entries
+    want = counts.copy()
+    want[1, :12] = np.concatenate([[0], np.cumsum(counts[1, :11])])
+    assert np.array_equal(a.to_numpy(), want) and total[None] == counts[1, :12].sum()
