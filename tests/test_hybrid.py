@@ -83,6 +83,7 @@ def test_regrid_ledger_and_region_follows_density():
     def track(s):
         _covered_nonnegative(s)
         r = s.region()
+        assert np.array_equal(r, s.regions.covered.to_numpy() != 0)  # the host's copy is the device's mask
         left[...] |= start & ~r
         ever[...] |= r
 

@@ -436,16 +436,17 @@ class HybridSolver(RegionSolver):
         synchronisation brings the diagnostics up to date: no full-grid pass here. With ``sort``
         (the scheduled regrids) the kept particles are put in cell order (:meth:`Coupling.sort`)."""
         masks = np.broadcast_to(masks, (self.ensemble, *self.n))
-        near = self.regions.near(masks)
+        grown = self.regions.grown(masks)
+        near = grown | self.regions.mask()  # where particles can be while the region moves: old, new, ring
         self.pool = self.pool.fitted(self._estimate(masks, near, ppc), near)
-        self.regions.fresh.from_numpy(masks.astype(np.uint8))
+        self.regions.stage(masks)
         self.sampler.cover(self.pool, self.cur, n * self.substeps, self._tilt_on(n), self.coupling.count)
         if sort and not self.pool.cell_ordered:
             self.coupling.sort(self.pool, self.cur)
             self.cur = 1 - self.cur
         else:
             self._compact()
-        self.pool.retain(self.regions.near(masks))  # the new region and its ring (covered = masks now)
+        self.pool.retain(grown)  # the new region and its ring
         self.regions.lists()
         if self.sampler.check_need() > self.pool.capacity:  # the estimate bounds it; kept as a guard
             raise RuntimeError("particle pool estimate too small at a regrid")
@@ -473,7 +474,7 @@ class HybridSolver(RegionSolver):
     def load_state(self, st: dict[str, np.ndarray]) -> None:
         self.spde.load_state({k[5:]: v for k, v in st.items() if k.startswith("spde_")})
         self.regions.load_state(st)
-        self.pool = self.pool.restored(st["x"], st["pid"], st["n_real"], self.regions.near(self.regions.mask()))
+        self.pool = self.pool.restored(st["x"], st["pid"], st["n_real"], self.regions.grown(self.regions.mask()))
         self.cur = 0
         self.regrids = [{k: st[f"regrid_{k}"][i].item() for k in REGRID_LOG} for i in range(len(st["regrid_step"]))]
 
