@@ -45,6 +45,7 @@ def test_growth_keeps_the_particles():
     assert p.grown(10) is p
     q = p.grown(13)
     assert q.capacity == 20  # at least twice: every new pool recompiles its kernels
+    assert q.grown(36).capacity == 45  # and a quarter more than asked
     qx, qpid, qn = q.occupied(0)
     want_x, want_pid, _ = pool.canonical(x[0, :, :9], pid[0, :, :9], n)  # occupied(): sorted by identity
     assert np.array_equal(qn, n)
