@@ -456,7 +456,9 @@ class HybridSolver(RegionSolver):
         """Slots each cell can ask for around a regrid (``(ensemble, *cells)``; the pool adds the
         headroom of :func:`pool.capacity`): the region and its ghost ring full, and a covered
         cell's reservoir ghosts."""
-        need = np.ceil(np.maximum(ppc, 0) * near)
+        need = np.maximum(ppc, 0)  # in place from here: one grid-sized array per regrid, not three
+        need *= near
+        np.ceil(need, out=need)
         if self.grid.has_dirichlet:
             need += self.grid.reservoir_ppc_max * 3 ** (self.dim - 1) * masks
         return need
