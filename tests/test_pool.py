@@ -68,7 +68,7 @@ def _grid(cells, boundary="periodic"):
 @ti.kernel
 def _move_all(p: ti.template(), b: ti.i32, y: ti.types.ndarray(), C: ti.types.ndarray()):
     """Every particle of buffer ``b`` to position ``y`` in cell ``C``; those of odd id0 dropped."""
-    for u in range(p.units()):
+    for u in range(p.units(b)):
         e, U, lo, hi = p.unit(b, u)
         for k in range(lo, hi):
             I = p.index(b, U, k)

@@ -191,7 +191,7 @@ class Sampler:
                 self.spde.q[J] = self.real(ti.cast(scratch[J], ti.f64) / vol)
                 scratch[J] = 0
             covered[J] = fresh[J]
-        for u in range(pool.units()):
+        for u in range(pool.units(cur)):
             e, U, lo, hi = pool.unit(cur, u)
             for p in range(lo, hi):
                 I = pool.index(cur, U, p)

@@ -86,6 +86,7 @@ class ParticlePool:
             self.pid = ti.Vector.field(2, ti.u32, shape=(buffers, ensemble, capacity))
         self.n = ti.field(ti.i32, shape=(buffers, ensemble))  # occupied slots per buffer and member
         self.kept = ti.field(ti.i32, shape=ensemble)  # slots the last compaction kept, per member
+        self.span = ti.field(ti.i32, shape=())  # blocks holding particles in the buffer a loop reads (units)
         if buffers == 2:
             self.keep = ti.field(ti.u8, shape=(ensemble, capacity))  # 1: the slot survives the compaction
             self.offset = ti.field(ti.i32, shape=(ensemble, self.blocks))  # first target slot of each block
@@ -158,14 +159,26 @@ class ParticlePool:
         """Nothing to do: a flat pool has no sparse storage (see :meth:`BlockPool.assume_active`)."""
 
     @ti.func
-    def units(self):
-        """Units of the particle loop: chunks of :data:`BLOCK` slots of every member."""
-        return self.ensemble * self.blocks
+    def units(self, b):
+        """Units of the particle loop over buffer ``b``: the chunks of :data:`BLOCK` slots of every
+        member up to the fullest member's last particle (:attr:`span` chunks per member).
+
+        The loop's range is set here, at run time, not over the capacity: Taichi 1.7.4's CPU
+        backend cuts a parallel range into one contiguous part per thread, so the empty slots
+        beyond the particles (a third or more of a hybrid's pool) went to the last thread while
+        the first walked every particle. Measured: a loop over 1.1 M slots whose first half held
+        the work ran no faster on 2 threads than on 1 (277 ms both), and 2× faster with the range
+        ending at the work; the hybrid's walk in a 64³ box 20.8 → 19.5 ms on 1 → 2 threads."""
+        self.span[None] = 0
+        for e in range(self.ensemble):
+            ti.atomic_max(self.span[None], ti.min((self.n[b, e] + BLOCK - 1) // BLOCK, self.blocks))
+        return self.ensemble * self.span[None]
 
     @ti.func
     def unit(self, b, u):
-        """Member, key and occupied slot range ``[lo, hi)`` of unit ``u`` in buffer ``b``."""
-        e, k = u // self.blocks, u % self.blocks
+        """Member, key and occupied slot range ``[lo, hi)`` of unit ``u`` of :meth:`units` in buffer ``b``."""
+        span = self.span[None]
+        e, k = u // span, u % span
         return e, ti.Vector([e, 0]), k * BLOCK, ti.min(k * BLOCK + BLOCK, self.n[b, e])
 
     @ti.func
@@ -203,18 +216,20 @@ class ParticlePool:
         in order (per-block counts, an exclusive scan over blocks, a scatter); :attr:`kept` and
         the other buffer's ``n`` get the count."""
         nxt = 1 - b
-        for e, k in ti.ndrange(self.ensemble, self.blocks):
+        for u in range(self.units(b)):
+            e, _, lo, hi = self.unit(b, u)
             c = 0
-            for p in range(k * BLOCK, ti.min(k * BLOCK + BLOCK, self.n[b, e])):
+            for p in range(lo, hi):
                 c += ti.cast(self.keep[e, p], ti.i32)
-            self.offset[e, k] = c
+            self.offset[e, lo // BLOCK] = c
         for e in range(self.ensemble):
-            total = exclusive_scan(self.offset, e, self.blocks)
+            total = exclusive_scan(self.offset, e, self.span[None])
             self.n[nxt, e] = total
             self.kept[e] = total
-        for e, k in ti.ndrange(self.ensemble, self.blocks):
-            j = self.offset[e, k]
-            for p in range(k * BLOCK, ti.min(k * BLOCK + BLOCK, self.n[b, e])):
+        for u in range(self.units(b)):
+            e, _, lo, hi = self.unit(b, u)
+            j = self.offset[e, lo // BLOCK]
+            for p in range(lo, hi):
                 if self.keep[e, p]:
                     self.x[nxt, e, j] = self.x[b, e, p]
                     if ti.static(self.ids):
@@ -403,8 +418,8 @@ class BlockPool:
         ti.no_activate(self.n, self.cnt, self.off, self.fixed)
 
     @ti.func
-    def units(self):
-        """Units of the particle loop: the active blocks."""
+    def units(self, b):
+        """Units of the particle loop (over either buffer): the active blocks."""
         return self.listed[None]
 
     @ti.func
