@@ -276,8 +276,9 @@ class ParticleSolver(Solver):
         G = ti.static(self.walker.group)
         x = ti.static(self.pool.x)
         if ti.static(self.grid.has_dirichlet):  # identities are not slots: one counter per particle
-            for e, p in ti.ndrange(self.ensemble, self.capacity):
-                if p < self.pool.n[b, e]:
+            for u in range(self.pool.units(b)):  # over the particles, not the capacity (pool.ParticlePool.units)
+                e, _, lo, hi = self.pool.unit(b, u)
+                for p in range(lo, hi):
                     ident = self.pool.pid[b, e, p]
                     y, alive, clamped = self.walker.move(x[b, e, p], e, ident[0], ident[1], step)
                     x[b, e, p] = y
