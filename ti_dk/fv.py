@@ -274,12 +274,10 @@ class SPDESolver(Solver):
                         elif ti.static(hi == DIRICHLET):
                             q_right = self.real(res_hi)
                         root_right = ti.sqrt(ti.max(q_right, self.real(0.0)))
-                        F = self.real(0.0)
-                        if (i == 0 and ti.static(lo == NEUMANN)) or (i == n and ti.static(hi == NEUMANN)):
-                            F = self.real(0.0)
-                        elif i == n and ti.static(hi == PERIODIC):
+                        F = self.real(0.0)  # what a Neumann face carries
+                        if i == n and ti.static(hi == PERIODIC):
                             F = F_first
-                        else:
+                        elif not ((i == 0 and ti.static(lo == NEUMANN)) or (i == n and ti.static(hi == NEUMANN))):
                             F = self._flux(i, 0, q_left, q_right, root_left + root_right, bits[g])
                         if i == 0:
                             F_first = F
