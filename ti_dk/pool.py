@@ -29,7 +29,9 @@ import taichi as ti
 
 from .grid import cell_of, exclusive_scan, numpy_dtype
 
-BLOCK = 256  # slots per compaction block: an exclusive scan over blocks replaces a contended atomic
+# slots per compaction block (an exclusive scan over blocks replaces a contended atomic) and per
+# unit of the particle loops: small, so that a loop has the ≥ 1024 units two threads need (units)
+BLOCK = 32
 LAYOUTS = ("flat", "pointer")  # the scene key pool_layout
 SIDE = {1: 32, 2: 8, 3: 8}  # cells per axis of a pointer block, by dimension (benchmarks/RESULTS.md)
 CHUNK = 64  # slots per chunk of a pointer block's array: allocated as it fills, released at regrids
@@ -163,12 +165,15 @@ class ParticlePool:
         """Units of the particle loop over buffer ``b``: the chunks of :data:`BLOCK` slots of every
         member up to the fullest member's last particle (:attr:`span` chunks per member).
 
-        The loop's range is set here, at run time, not over the capacity: Taichi 1.7.4's CPU
-        backend cuts a parallel range into one contiguous part per thread, so the empty slots
-        beyond the particles (a third or more of a hybrid's pool) went to the last thread while
-        the first walked every particle. Measured: a loop over 1.1 M slots whose first half held
-        the work ran no faster on 2 threads than on 1 (277 ms both), and 2× faster with the range
-        ending at the work; the hybrid's walk in a 64³ box 20.8 → 19.5 ms on 1 → 2 threads."""
+        Taichi 1.7.4's CPU backend (its default ``make_cpu_multithreading_loop`` transform) cuts a
+        parallel range into one contiguous block per thread of at least 512 iterations. So the
+        range is set here, at run time, not over the capacity: the empty slots beyond the
+        particles (a third or more of a hybrid's pool) went to the last thread while the first
+        walked every particle (a loop over 1.1 M slots whose first half held the work: 277 ms on
+        1 thread and on 2; 2× faster with the range ending at the work). And the units are small
+        (:data:`BLOCK`): with 256 slots, ellipse2d's 70,000 particles made 274 units, one block,
+        and its walk ran on one thread (2.25 ms on 1 thread, 2.10 on 2; with 32 slots 2.12 and
+        1.35)."""
         self.span[None] = 0
         for e in range(self.ensemble):
             ti.atomic_max(self.span[None], ti.min((self.n[b, e] + BLOCK - 1) // BLOCK, self.blocks))
