@@ -231,12 +231,13 @@ class SPDESolver(Solver):
     @ti.kernel
     def update(self):
         r"""Second part: eq. (9), :math:`q_I \mathrel{+}= Δt \sum_a (F_{I+½e_a} - F_{I-½e_a}) / Δx_a`,
-        with the fluxes of the last :meth:`fluxes` (and eq. 10 for q̄)."""
+        with the fluxes of the last :meth:`fluxes` (and eq. 10 for q̄, in the same loop: one
+        parallel task, see :func:`grid.exclusive_scan`)."""
         for J in ti.grouped(self.q):
             self.q[J] += self.real(self.dt) * self._divergence(self.flux, J)
-        if ti.static(self.track_mean):
-            for J in ti.grouped(self.qbar):
-                self.qbar[J] += self.real(self.dt) * self._divergence(self.flux_bar, J)
+            if ti.static(self.track_mean):
+                if J[0] == 0:  # q̄ has one member
+                    self.qbar[J] += self.real(self.dt) * self._divergence(self.flux_bar, J)
 
     @ti.kernel
     def _step_members(self, step: ti.u32):

@@ -175,6 +175,7 @@ class ParticlePool:
         and its walk ran on one thread (2.25 ms on 1 thread, 2.10 on 2; with 32 slots 2.12 and
         1.35)."""
         self.span[None] = 0
+        ti.loop_config(serialize=True)  # over members: a serial task (grid.exclusive_scan)
         for e in range(self.ensemble):
             ti.atomic_max(self.span[None], ti.min((self.n[b, e] + BLOCK - 1) // BLOCK, self.blocks))
         return self.ensemble * self.span[None]
@@ -190,6 +191,11 @@ class ParticlePool:
     def unit_of(self, e, C):
         """The key of the unit that takes new particles of cell ``C`` of member ``e``."""
         return ti.Vector([e, 0])
+
+    @ti.func
+    def first_new(self, U):
+        """The first slot of unit ``U`` appended since the last compaction (the ghosts of a step)."""
+        return self.kept[U[0]]
 
     @ti.func
     def index(self, b, U, p):
@@ -227,11 +233,12 @@ class ParticlePool:
             for p in range(lo, hi):
                 c += ti.cast(self.keep[e, p], ti.i32)
             self.offset[e, lo // BLOCK] = c
+        ti.loop_config(serialize=True)  # a serial task (grid.exclusive_scan)
         for e in range(self.ensemble):
             total = exclusive_scan(self.offset, e, self.span[None])
             self.n[nxt, e] = total
             self.kept[e] = total
-        for u in range(self.units(b)):
+        for u in range(self.ensemble * self.span[None]):  # the units of the first loop
             e, _, lo, hi = self.unit(b, u)
             j = self.offset[e, lo // BLOCK]
             for p in range(lo, hi):
@@ -244,6 +251,7 @@ class ParticlePool:
     @ti.kernel
     def truncate(self, b: ti.i32):
         """Drop what was appended to buffer ``b`` since the last compaction."""
+        ti.loop_config(serialize=True)  # a serial task (grid.exclusive_scan)
         for e in range(self.ensemble):
             self.n[b, e] = self.kept[e]
 
@@ -444,6 +452,10 @@ class BlockPool:
         return ti.Vector([e, B])
 
     @ti.func
+    def first_new(self, U):
+        return self.fixed[U[0], U[1]]
+
+    @ti.func
     def index(self, b, U, p):
         return ti.Vector([U[0], U[1], b, p])
 
@@ -540,6 +552,7 @@ class BlockPool:
                     c[code - 1] += 1
             for k in ti.static(range(self.ndirs)):
                 self.cnt[U[0], U[1], k] = c[k]
+        ti.loop_config(serialize=True)  # a serial task (grid.exclusive_scan)
         for e in range(self.ensemble):
             self.kept[e] = 0
         self.need[None] = 0
@@ -612,6 +625,7 @@ class BlockPool:
                     self.pid[e, U[1], b, p] = old.pid[e, U[1], b, p]
                     self.keep[e, U[1], b, p] = old.keep[e, U[1], b, p]
             self.fixed[e, U[1]] = old.fixed[e, U[1]]
+        ti.loop_config(serialize=True)  # a serial task (grid.exclusive_scan)
         for e in range(self.ensemble):
             self.kept[e] = old.kept[e]
 
@@ -635,6 +649,7 @@ class BlockPool:
         for u in range(self.listed[None]):
             e, U, _, _ = self.unit(0, u)
             self.fixed[e, U[1]] = self.n[e, U[1], 0]
+        ti.loop_config(serialize=True)  # a serial task (grid.exclusive_scan)
         for e in range(self.ensemble):
             self.kept[e] = n[e]
 

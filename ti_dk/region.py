@@ -211,7 +211,8 @@ class Region:
                 J[last] = j
                 c += ti.cast(flags[J] != 0, ti.i32)
             self.row[0, r] = c
-        for _ in range(1):  # the scan, serial
+        ti.loop_config(serialize=True)  # the scan (grid.exclusive_scan: a serial task)
+        for _ in range(1):
             self.listed[None] = exclusive_scan(self.row, 0, rows)
         for r in range(rows):
             R = self.unflatten(r, ti.static(flags.shape[:-1]))
