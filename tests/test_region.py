@@ -66,7 +66,7 @@ def test_box_layout_does_not_matter_and_shared_ghosts_are_sampled_once():
         s.set_region(mask(boxes, (16, 16))[None], 0)
         # 3 particles per cell everywhere: the ghost ring gets exactly 3 per ghost cell, once each,
         # the gap column included although it borders both boxes
-        s.sampler.fill(s.pool, s.cur, 0, s.n_ring, 0.0, 1)
+        s.sampler.fill(s.pool, s.cur, 0, s.n_ring, 0.0, 1, 0)
         n_ghost = s.pool.n.to_numpy()[s.cur, 0] - s.n_real.to_numpy()[0]
         assert n_ghost == 3 * s.regions.ring.to_numpy().sum() == 3 * (12 * 12 - 9 * 10)
         for n in range(30):

@@ -62,16 +62,21 @@ class Coupling:
     @ti.kernel
     def walk(self, pool: ti.template(), cur: ti.i32, step: ti.i32, last: ti.i32):
         """Step 3 (one particle sub-step): walk, mark to keep what ends in the region, add to ΔN;
-        on the ``last`` sub-step count the particles per covered cell."""
+        on the ``last`` sub-step count the particles per covered cell. The ghosts of this
+        sub-step were walked by the fill, which kept only those that entered the region
+        (:meth:`Sampler.sample`): here they are only accounted for."""
+        self.clamped[None] += self.sampler.clamped[None]  # the ghosts' clamped steps, all of them
         for u in range(pool.units(cur)):
             e, U, lo, hi = pool.unit(cur, u)
             for p in range(lo, hi):
                 I = pool.index(cur, U, p)
                 ident = pool.pid[I]
-                y, alive, clamped = self.walker.move(pool.x[I], e, ident[0], ident[1], ti.u32(step))
+                ghost = ident[1] == ti.u32(step + 1)
+                y, alive, clamped = pool.x[I], True, 0
+                if not ghost:
+                    y, alive, clamped = self.walker.move(y, e, ident[0], ident[1], ti.u32(step))
                 if clamped:  # rare (p ≈ erfc(Δx/√(2Δt)) per axis): no atomic on the shared counter otherwise
                     self.clamped[None] += clamped
-                ghost = ident[1] == ti.u32(step + 1)
                 D = self._cell(e, y)
                 keep = alive and self.region.covered[D] != 0
                 pool.x[I] = y
@@ -257,7 +262,8 @@ class HybridSolver(RegionSolver):
        probability ``α``, where ``ℓ + α = max(q_I^n, 0) V_c`` (paper §3), placed with the linear
        profile of :meth:`Sampler.tilt` (the slope of the deterministic q̄, by default);
     2. the SPDE advances everywhere, eq. (9), giving ``q^{n+1,*}`` and the face fluxes ``F``;
-    3. every particle (real and ghost) takes one clamped step (:class:`Walker`); those ending in
+    3. every particle (real and ghost) takes one clamped step (:class:`Walker`; a ghost's step is
+       drawn as it is sampled in 1, and only the ghosts that enter are stored); those ending in
        the region are kept, the rest dropped, and the net crossings are counted per uncovered
        cell: ``ΔN_I`` gains 1 for each real particle that leaves into ``I`` and loses 1 for each
        ghost from ``I`` that enters. With ``particle_substeps = k`` (end of paper §3.1) this is
@@ -387,7 +393,7 @@ class HybridSolver(RegionSolver):
         :meth:`Coupling.s1`: what the SPDE left in the ghost cell); the fill is a pure
         function of its inputs, so a pool that is too small is grown and the fill redone."""
         while True:
-            self.sampler.fill(self.pool, self.cur, sub, self.n_ring, w, tilt_on)
+            self.sampler.fill(self.pool, self.cur, sub, self.n_ring, w, tilt_on, 1)
             need = self.sampler.check_need()
             if need <= self.pool.capacity:
                 return
