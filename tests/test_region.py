@@ -44,8 +44,7 @@ def test_ring_and_lists_match_the_definition(cells, boundary):
     r = Region(grid, 3, RegridParams())
     covered = (np.random.default_rng(1).uniform(size=(3, *cells)) < 0.2).astype(np.uint8)
     covered[1, 0] = 1  # a whole boundary layer: reservoir ghosts below it
-    r.covered.from_numpy(covered)
-    r.lists()
+    r.load_state({"covered": covered, "boxes": np.zeros((0, 1 + 2 * d), dtype=np.int64)})  # and lists()
     ring = r.ring.to_numpy()
     assert np.array_equal(ring, _ring_reference(covered, boundary))
     # the lists: flat indices, ascending (the order every loop over them keeps)
