@@ -143,7 +143,8 @@ class Sampler:
         With ``walked`` (the ghosts of a particle sub-step ``step``) each is walked at once
         (:meth:`_placed`) and only those that end in the region are appended, in index order: a
         ghost that stays out takes no slot, and the hybrid's walk does not move it again. Most
-        ghosts stay out (about 85 % in sphere3d, where ghosts were 30 % of the particles walked).
+        ghosts stay out (ellipse2d: of 17,000 ghosts a step about 1,600 enter; the walk went
+        from 63,400 particles a step to 48,000).
         The ghosts that enter are found in a first pass, remembered by index (below 64) and
         placed again in the second; a cell of more ghosts places those beyond 63 twice."""
         lin = ti.u32(0)

@@ -84,7 +84,7 @@ class Region:
         return regrid.grow(masks, 1, (None, *self.periodic))
 
     def lists(self) -> None:
-        """Ghost ring and the flat lists of ring and covered cells, from ``covered``."""
+        """Ghost ring and the flat lists of ring and covered cells, from ``covered`` (its host copy)."""
         self.ring.from_numpy(self._ring())
         self.n_ring = self._list(self.ring, self.ring_list)
         self.n_cover = self._list(self.covered, self.cover_list)
