@@ -442,18 +442,24 @@ class HybridSolver(RegionSolver):
     def _set_region(self, masks: np.ndarray, n: int, ppc: np.ndarray, sort: bool = False) -> None:
         """:meth:`set_region` inside a step (regrid, extension), where the step's own
         synchronisation brings the diagnostics up to date: no full-grid pass here. With ``sort``
-        (the scheduled regrids) the kept particles are put in cell order (:meth:`Coupling.sort`)."""
+        (the scheduled regrids) the kept particles are put in cell order (:meth:`Coupling.sort`).
+        Between steps every particle lies in a covered cell, so a region that only grows keeps
+        them all where they are (:meth:`pool.ParticlePool.settle`; the compaction it replaces
+        copied 5 M particles, 17 ms, at each of sphere3d's 513 extensions)."""
         masks = np.broadcast_to(masks, (self.ensemble, *self.n))
+        old = self.regions.mask()
         grown = self.regions.grown(masks)
-        near = grown | self.regions.mask()  # where particles can be while the region moves: old, new, ring
+        near = grown | old  # where particles can be while the region moves: old, new, ring
         self.pool = self.pool.fitted(self._estimate(masks, near, ppc), near)
         self.regions.stage(masks)
         self.sampler.cover(self.pool, self.cur, n * self.substeps, self._tilt_on(n), self.coupling.count)
         if sort and not self.pool.cell_ordered:
             self.coupling.sort(self.pool, self.cur)
             self.cur = 1 - self.cur
-        else:
+        elif (old & ~masks).any():
             self._compact()
+        else:  # the region only grew (every extension): no particle leaves, a compaction would copy them all
+            self.pool.settle(self.cur)
         self.pool.retain(grown)  # the new region and its ring
         self.regions.lists()
         if self.sampler.check_need() > self.pool.capacity:  # the estimate bounds it; kept as a guard

@@ -255,6 +255,14 @@ class ParticlePool:
         for e in range(self.ensemble):
             self.n[b, e] = self.kept[e]
 
+    @ti.kernel
+    def settle(self, b: ti.i32):
+        """Keep what was appended to buffer ``b`` since the last compaction, where it lies: what
+        :meth:`compacted` gives when every slot is marked, without the copy."""
+        ti.loop_config(serialize=True)  # a serial task (grid.exclusive_scan)
+        for e in range(self.ensemble):
+            self.kept[e] = self.n[b, e]
+
 
 @ti.data_oriented
 class BlockPool:
@@ -612,6 +620,20 @@ class BlockPool:
         for u in range(self.listed[None]):
             e, U, _, _ = self.unit(b, u)
             self.n[e, U[1], b] = self.fixed[e, U[1]]
+
+    @ti.kernel
+    def settle(self, b: ti.i32):
+        """Keep what was appended to buffer ``b`` since the last compaction, where it lies (each new
+        particle was appended to the block of its cell): what :meth:`compacted` gives when every
+        slot is marked, without the moves."""
+        self.assume_active()
+        ti.loop_config(serialize=True)  # a serial task (grid.exclusive_scan)
+        for e in range(self.ensemble):
+            self.kept[e] = 0
+        for u in range(self.listed[None]):
+            e, U, _, _ = self.unit(b, u)
+            self.fixed[e, U[1]] = self.n[e, U[1], b]
+            self.kept[e] += self.n[e, U[1], b]
 
     @ti.kernel
     def _copy(self, old: ti.template()):
