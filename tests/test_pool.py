@@ -1,6 +1,6 @@
-"""The particle pools: compaction against NumPy (order kept, across block edges), growth that keeps
-the particles, the one capacity rule against Poisson fluctuations, and the pointer layout's moves
-between blocks (scan, periodic wrap, growth, release)."""
+"""The particle pools: compaction against NumPy (order kept, across block edges), settling what was
+appended, growth that keeps the particles, the one capacity rule against Poisson fluctuations, and
+the pointer layout's moves between blocks (scan, periodic wrap, growth, release)."""
 import math
 
 import numpy as np
@@ -36,6 +36,10 @@ def test_compaction_keeps_the_marked_slots_in_order():
     p.n.from_numpy(np.stack([n, got_n]).astype(np.int32))
     p.truncate(0)  # drop what was appended after the compaction
     assert np.array_equal(p.n.to_numpy()[0], got_n)
+    p.n.from_numpy(np.stack([n, got_n]).astype(np.int32))  # appended again: settle keeps them where they lie
+    p.settle(0)
+    p.truncate(0)
+    assert np.array_equal(p.kept.to_numpy(), n) and np.array_equal(p.n.to_numpy()[0], n)
 
 
 def test_growth_keeps_the_particles():
