@@ -461,7 +461,7 @@ class HybridSolver(RegionSolver):
         else:  # the region only grew (every extension): no particle leaves, a compaction would copy them all
             self.pool.settle(self.cur)
         self.pool.retain(grown)  # the new region and its ring
-        self.regions.lists()
+        self.regions.lists(grown)
         if self.sampler.check_need() > self.pool.capacity:  # the estimate bounds it; kept as a guard
             raise RuntimeError("particle pool estimate too small at a regrid")
         self._change += self.sampler.created[None] - self.sampler.removed[None]

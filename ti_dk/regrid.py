@@ -82,8 +82,8 @@ def cluster(tags: np.ndarray, p: RegridParams) -> list[Box]:
         lo, hi = box
         size = np.array(hi) - np.array(lo)
         splittable = size >= 2 * p.min_box
-        if int(sigs[0].sum()) / math.prod(hi[a] - lo[a] for a in range(len(lo))) >= p.efficiency \
-                and np.all(size <= p.max_box) or not splittable.any():
+        if int(sigs[0].sum()) / int(size.prod()) >= p.efficiency and np.all(size <= p.max_box) \
+                or not splittable.any():
             boxes.append(box)
             continue
         axis, cut = _cut(sigs, size, splittable, p)
