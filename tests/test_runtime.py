@@ -1,9 +1,11 @@
 """Taichi's start-up refusals, stopping on a signal between steps, and the statistics rows stacked."""
+import inspect
 import os
 import signal
 
 import numpy as np
 import pytest
+import taichi as ti
 
 from ti_dk import ConfigError
 from ti_dk.runtime import Stopped, check_stop, init, initialized, stats_of, stop_on_signals
@@ -15,6 +17,20 @@ def test_init_refuses_what_cannot_run():
     with pytest.raises(ConfigError, match="at least 1 CPU thread"):
         init("cpu", threads=0)
     assert initialized()  # the session's runtime (conftest) is untouched
+
+
+def test_a_kernel_that_fails_to_compile_is_still_located():
+    """init's plain source positions (no caret excerpt) keep the file, line and kernel."""
+    line = inspect.currentframe().f_lineno + 4  # the line of the bad name
+
+    @ti.kernel
+    def broken() -> ti.i32:
+        return undefined_name  # noqa: F821
+
+    with pytest.raises(ti.TaichiNameError) as err:
+        broken()
+    assert f'File "{__file__}", line {line}, in broken' in str(err.value)
+    assert "^" not in str(err.value)  # the caret excerpt is what init leaves out
 
 
 def test_a_signal_stops_at_the_next_check_only():

@@ -43,6 +43,7 @@ def init(arch: str = "cpu", threads: int | None = None) -> None:
     if arch == "cuda" and not cuda_driver_present():
         raise ConfigError("the 'cuda' backend is not available on this machine (no CUDA driver): run with --arch cpu")
     _keep_freed_memory()
+    _plain_source_positions()
     kw = {"cpu_max_num_threads": threads} if threads else {}
     with contextlib.redirect_stdout(io.StringIO()):  # ti.init prints "[Taichi] Starting on arch=..." unasked
         ti.init(arch=ARCHS[arch], default_fp=ti.f64, offline_cache=True, log_level=ti.WARN, **kw)
@@ -67,6 +68,24 @@ def _keep_freed_memory() -> None:
         libc.mallopt(-1, 2**31 - 1)  # M_TRIM_THRESHOLD (a C int)
     except (OSError, AttributeError):
         pass
+
+
+def _plain_source_positions() -> None:
+    """Make Taichi's compiler label each statement with its file and line only.
+
+    Taichi 1.7.4's AST transformer (``ASTTransformerContext.get_pos_info``) formats, for every
+    statement and expression of every kernel it builds, the source line with a caret line under
+    the node, both wrapped to 80 columns by ``textwrap``, even when nothing fails and the kernel
+    then comes from the offline cache (the frontend runs on every start). Symptom: ellipse2d's
+    solver took 3.0–3.5 s from ``make_solver`` to the end of its second step with a warm cache,
+    about 1 s of it in ``get_pos_info`` (``textwrap`` was the largest Python cost of the start-up);
+    1.9–2.5 s with this. A compilation error still names the file, line and kernel."""
+    from taichi.lang.ast import ast_transformer_utils as utils
+
+    def file_and_line(ctx, node) -> str:
+        return f'File "{ctx.file}", line {node.lineno + ctx.lineno_offset}, in {ctx.func.func.__name__}:\n'
+
+    utils.ASTTransformerContext.get_pos_info = file_and_line
 
 
 def cuda_driver_present() -> bool:
