@@ -67,7 +67,7 @@ def main():
         s.spde.initialize(ppc)
         s.set_region(centred_box(tuple(args.cells), fraction)[None], 0)
         ms = 1e3 * per_step(s, args.reps)
-        walked = s.diagnostics()["particles"] + int(s.regions.ring.to_numpy().sum() * args.ppc)
+        walked = s.diagnostics()["particles"] + int(s.regions.ring_mask.sum() * args.ppc)
         print(f"| {100 * fraction:g} % | {ms:.2f} | {ms / fv_ms:.2f} | {walked} | {walked / ms / 1e3:.1f} |")
     ell = load_scene("ellipse2d", cells=args.cells)
     s = make_solver(ell, ell.initial_ppc)

@@ -97,8 +97,9 @@ def worker(case, threads, arch, blocks):
             if CLOCK is not time.perf_counter:  # its share of the CPU time, as the wall-time share
                 dt *= (CLOCK() - c0) / (s.timing["particles"] + s.timing["spde"] - t0 - spde0)
             best = min(best, dt / 10)
-        ring = (s.regions if hasattr(s, "regions") else s).ring  # the region moved out of the solver (issue 12)
-        walked = s.diagnostics()["particles"] + int(ring.to_numpy().sum() * 5.0)
+        r = s.regions if hasattr(s, "regions") else s  # the region moved out of the solver (issue 12)
+        ring = r.ring_mask if hasattr(r, "ring_mask") else r.ring.to_numpy()  # a host array since issue 13
+        walked = s.diagnostics()["particles"] + int(ring.sum() * 5.0)
         return 1e9 * best / walked
     raise ValueError(case)
 

@@ -34,7 +34,7 @@ def test_sampled_particles_lie_in_their_birth_cells(layout):
         assert ghosts.size
         origin = np.stack(np.unravel_index(ids[:, 0] >> bits, padded), axis=1) - 1
         assert np.array_equal(np.floor(ghosts / dx).astype(int), origin)
-        ring = np.argwhere(s.regions.ring.to_numpy()[e]) - 1
+        ring = np.argwhere(s.regions.ring_mask[e]) - 1
         assert {tuple(c) for c in origin} <= {tuple(c) for c in ring}
         for c in ring:
             lam = 3.5 if c[0] < 0 else ppc[(e, *c)]

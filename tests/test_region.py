@@ -45,7 +45,7 @@ def test_ring_and_lists_match_the_definition(cells, boundary):
     covered = (np.random.default_rng(1).uniform(size=(3, *cells)) < 0.2).astype(np.uint8)
     covered[1, 0] = 1  # a whole boundary layer: reservoir ghosts below it
     r.load_state({"covered": covered, "boxes": np.zeros((0, 1 + 2 * d), dtype=np.int64)})  # and lists()
-    ring = r.ring.to_numpy()
+    ring = r.ring_mask.astype(np.uint8)
     assert np.array_equal(ring, _ring_reference(covered, boundary))
     # the lists: flat indices, ascending (the order every loop over them keeps)
     assert r.n_ring == ring.sum() and r.n_cover == covered.sum()
@@ -67,7 +67,7 @@ def test_box_layout_does_not_matter_and_shared_ghosts_are_sampled_once():
         # the gap column included although it borders both boxes
         s.sampler.fill(s.pool, s.cur, 0, s.n_ring, 0.0, 1, 0)
         n_ghost = s.pool.n.to_numpy()[s.cur, 0] - s.n_real.to_numpy()[0]
-        assert n_ghost == 3 * s.regions.ring.to_numpy().sum() == 3 * (12 * 12 - 9 * 10)
+        assert n_ghost == 3 * s.regions.ring_mask.sum() == 3 * (12 * 12 - 9 * 10)
         for n in range(30):
             s.step(n)
         final.append(s.density())

@@ -440,8 +440,10 @@ def test_long_runs_say_how_long_before_they_start(capsys):
 # Pinned on x86-64, Taichi 1.7.4, CPU backend: a refactor that changes one bit of these runs changes
 # what users get from a fixed seed, and must say so (update the digest in the same commit, with why).
 PINNED = {
-    # the scene's regrid_floor 0.6 (issue 13); with --set regrid_floor=1 the digest is still 9f10bb9692767403
-    "ellipse2d": (["--quick", "--seed", "3"], "f0fcd748b8d0abb9"),
+    # the scene's regrid_floor 0.6 (issue 13). Since a regrid's removed content is summed on the host
+    # (issue 13: the same bits on any thread count), removed and regrid_change differ from the last
+    # digest, f0fcd748b8d0abb9, by at most 5e-13 (rounding); particles and densities are unchanged.
+    "ellipse2d": (["--quick", "--seed", "3"], "beabfe13bb62291a"),
     "void1d": (["--method", "hybrid", "--ensemble", "64", "--t-end", "0.0005", "--seed", "3"], "0e805bb2963e09c9"),
 }
 

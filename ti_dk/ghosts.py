@@ -39,7 +39,6 @@ class Sampler:
         self.need = ti.field(ti.i32, shape=())  # most slots a member asked for (TOO_MANY: a cell overflowed)
         self.clamped = ti.field(ti.i64, shape=())  # axis steps clamped in the ghosts' walk of the last fill
         self.created = ti.field(ti.i64, shape=())  # particles sampled at the last regrid
-        self.removed = ti.field(ti.f64, shape=())  # SPDE content Σ q V_c those cells held before
 
     def check_need(self) -> int:
         """The most slots a member asked for in the last fill; raises if a cell overflowed its ids."""
@@ -215,29 +214,35 @@ class Sampler:
             self.sample(pool, cur, J[0], C, lam, step, step + 1, tilt_on, walked)
 
     @ti.kernel
-    def cover(self, pool: ti.template(), cur: ti.i32, step: ti.i32, tilt_on: ti.i32, scratch: ti.template()):
-        """Move to the region in ``fresh``: sample the newly covered cells (birth ``step |
-        REGRID_BIRTH``), whose q becomes N / V_c, and mark to keep the particles still covered.
-        ``scratch`` (i32 per cell, zero) holds the counts until every tilt has read q."""
+    def cover(self, pool: ti.template(), cur: ti.i32, step: ti.i32, tilt_on: ti.i32, scratch: ti.template(),
+              cells: ti.types.ndarray(dtype=ti.i32, ndim=1), n_new: ti.i32, n_gone: ti.i32, mark: ti.i32):
+        """Move the region by the cells :meth:`Region.stage` listed in ``cells`` (flat indices: the
+        ``n_new`` it gains, then the ``n_gone`` it loses): sample the newly covered cells (birth
+        ``step | REGRID_BIRTH``), whose q becomes N / V_c, and with ``mark`` mark to keep the
+        particles still covered (a region that only grows keeps them all: the caller then skips
+        the marks, a pass over every particle). Loops over the listed cells, not the grid: with
+        both, sphere3d's extensions took 57 → 36 ms. ``scratch`` (i32 per cell, zero) holds the
+        counts until every tilt has read q."""
         vol = ti.static(self.grid.cell_volume)
-        covered, fresh = ti.static(self.region.covered, self.region.fresh)
+        covered, shape = ti.static(self.region.covered, self.region.covered.shape)
         self.need[None] = 0
         self.created[None] = 0
-        self.removed[None] = 0.0
-        for J in ti.grouped(covered):
-            if fresh[J] and not covered[J]:
-                C = ti.Vector([J[a + 1] for a in ti.static(range(self.dim))])
-                lam = ti.cast(self.spde.q[J], ti.f64) * vol
-                m = self.sample(pool, cur, J[0], C, lam, step, step | REGRID_BIRTH, tilt_on, 0)
-                self.created[None] += m
-                self.removed[None] += lam
-                scratch[J] = m
-        for J in ti.grouped(covered):
-            if fresh[J] and not covered[J]:
+        for i in range(n_new):
+            J = self.region.unflatten(cells[i], shape)
+            C = ti.Vector([J[a + 1] for a in ti.static(range(self.dim))])
+            lam = ti.cast(self.spde.q[J], ti.f64) * vol
+            m = self.sample(pool, cur, J[0], C, lam, step, step | REGRID_BIRTH, tilt_on, 0)
+            self.created[None] += m
+            scratch[J] = m
+        for i in range(n_new + n_gone):
+            J = self.region.unflatten(cells[i], shape)
+            if i < n_new:
                 self.spde.q[J] = self.real(ti.cast(scratch[J], ti.f64) / vol)
                 scratch[J] = 0
-            covered[J] = fresh[J]
-        for u in range(pool.units(cur)):
+                covered[J] = ti.u8(1)
+            else:
+                covered[J] = ti.u8(0)
+        for u in range(pool.units(cur) * mark):
             e, U, lo, hi = pool.unit(cur, u)
             for p in range(lo, hi):
                 I = pool.index(cur, U, p)

@@ -305,6 +305,7 @@ class HybridSolver(RegionSolver):
         self.cur = 0  # the pool buffer holding the particles between steps
         self.regrids: list[dict] = []  # one record per regrid
         self._change = 0.0  # created − removed at this step's regrid
+        self._removed = 0.0  # SPDE content Σ q V_c of the cells the last regrid covered anew
         self.timing = {"spde": 0.0, "particles": 0.0, "regrid": 0.0}  # seconds spent in each part
 
     @property
@@ -430,7 +431,7 @@ class HybridSolver(RegionSolver):
         covered = self.n_cover
         self.regrids.append({"step": n, "boxes": sum(len(b) for b in self.boxes), "covered_cells": covered,
                              "efficiency": tagged / covered if covered else 1.0,
-                             "created": int(self.sampler.created[None]), "removed": float(self.sampler.removed[None]),
+                             "created": int(self.sampler.created[None]), "removed": self._removed,
                              "on_demand": on_demand})
 
     def set_region(self, masks: np.ndarray, n: int) -> None:
@@ -451,12 +452,16 @@ class HybridSolver(RegionSolver):
         grown = self.regions.grown(masks)
         near = grown | old  # where particles can be while the region moves: old, new, ring
         self.pool = self.pool.fitted(self._estimate(masks, near, ppc), near)
-        self.regions.stage(masks)
-        self.sampler.cover(self.pool, self.cur, n * self.substeps, self._tilt_on(n), self.coupling.count)
-        if sort and not self.pool.cell_ordered:
+        sort = sort and not self.pool.cell_ordered
+        cells, n_new, n_gone = self.regions.stage(masks)
+        # the SPDE content the newly covered cells held, summed here: the same bits on any thread count
+        self._removed = float(ppc.reshape(-1)[cells[:n_new]].sum())
+        self.sampler.cover(self.pool, self.cur, n * self.substeps, self._tilt_on(n), self.coupling.count,
+                           cells, n_new, n_gone, int(sort or n_gone > 0))
+        if sort:
             self.coupling.sort(self.pool, self.cur)
             self.cur = 1 - self.cur
-        elif (old & ~masks).any():
+        elif n_gone:
             self._compact()
         else:  # the region only grew (every extension): no particle leaves, a compaction would copy them all
             self.pool.settle(self.cur)
@@ -464,7 +469,7 @@ class HybridSolver(RegionSolver):
         self.regions.lists(grown)
         if self.sampler.check_need() > self.pool.capacity:  # the estimate bounds it; kept as a guard
             raise RuntimeError("particle pool estimate too small at a regrid")
-        self._change += self.sampler.created[None] - self.sampler.removed[None]
+        self._change += self.sampler.created[None] - self._removed
 
     def _estimate(self, masks: np.ndarray, near: np.ndarray, ppc: np.ndarray) -> np.ndarray:
         """Slots each cell can ask for around a regrid (``(ensemble, *cells)``; the pool adds the

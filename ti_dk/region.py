@@ -11,7 +11,15 @@ import numpy as np
 import taichi as ti
 
 from . import regrid
-from .grid import DIRICHLET, PERIODIC, Grid, exclusive_scan
+from .grid import DIRICHLET, PERIODIC, Grid
+
+
+def _joined(first: np.ndarray, second: np.ndarray) -> np.ndarray:
+    """Two lists of flat indices end to end as one i32 kernel argument (never empty: Taichi takes no
+    array of size 0)."""
+    out = np.zeros(max(first.size + second.size, 1), dtype=np.int32)
+    out[:first.size], out[first.size:first.size + second.size] = first, second
+    return out
 
 
 @ti.data_oriented
@@ -31,16 +39,13 @@ class Region:
         self.periodic = tuple(lo == PERIODIC for lo, _ in grid.boundary)
         E, n = ensemble, self.n
         self.covered = ti.field(ti.u8, shape=(E, *n))  # 1 where the cell is in the particle region
-        self.fresh = ti.field(ti.u8, shape=(E, *n))  # the region being regridded to
         self.low = ti.field(ti.u8, shape=(E, *n))  # 1: uncovered, and too low to stay so (mark_low)
-        self.ring = ti.field(ti.u8, shape=(E, *self.padded))  # 1 on ghost cells (padded index = cell + 1)
         self.ring_list = ti.field(ti.i32, shape=E * math.prod(self.padded))  # flat indices of ghost cells
         self.cover_list = ti.field(ti.i32, shape=E * math.prod(n))  # flat indices of covered cells
-        self.row = ti.field(ti.i32, shape=(1, E * math.prod(self.padded[:-1])))  # list entries per row (last axis)
-        self.listed = ti.field(ti.i32, shape=())  # length of the list built last
         self.n_ring, self.n_cover = 0, 0  # lengths of the two lists
         self.boxes: list[list[regrid.Box]] = [[] for _ in range(E)]  # each member's region
         self._mask = np.zeros((E, *n), dtype=bool)  # the host's copy of `covered` (read at every regrid)
+        self.ring_mask = np.zeros((E, *self.padded), dtype=bool)  # host: the ghost cells (padded index = cell + 1)
 
     # -- host -----------------------------------------------------------------------------
     def mask(self) -> np.ndarray:
@@ -48,11 +53,14 @@ class Region:
         device read, which cost an extension 0.5 ms of its 9 in ellipse2d)."""
         return self._mask.copy()
 
-    def stage(self, masks: np.ndarray) -> None:
-        """Write ``masks`` to ``fresh``, the region the sampler's ``cover`` moves ``covered`` to
-        next; :meth:`mask` answers ``masks`` from now on."""
-        self._mask = np.array(masks, dtype=bool)
-        self.fresh.from_numpy(self._mask.astype(np.uint8))
+    def stage(self, masks: np.ndarray) -> tuple[np.ndarray, int, int]:
+        """Make ``masks`` the region :meth:`mask` answers from now on; return what the sampler's
+        ``cover`` changes ``covered`` by: the flat indices of the cells the region gains, then
+        of those it loses, and the two counts (lists, where a grid-sized field written with
+        ``from_numpy`` and read whole cost sphere3d's extensions about 10 ms each)."""
+        old, self._mask = self._mask, np.array(masks, dtype=bool, order="C")
+        new, gone = np.flatnonzero(self._mask & ~old), np.flatnonzero(old & ~self._mask)
+        return _joined(new, gone), new.size, gone.size
 
     def plan(self, ppc: np.ndarray) -> tuple[np.ndarray, int]:
         """A new region for every member from its SPDE content ``ppc`` (:func:`regrid.region`;
@@ -85,10 +93,15 @@ class Region:
 
     def lists(self, grown: np.ndarray | None = None) -> None:
         """Ghost ring and the flat lists of ring and covered cells, from ``covered`` (its host copy;
-        ``grown``: its :meth:`grown`, where the caller has made it already)."""
-        self.ring.from_numpy(self._ring(self.grown(self._mask) if grown is None else grown))
-        self.n_ring = self._list(self.ring, self.ring_list)
-        self.n_cover = self._list(self.covered, self.cover_list)
+        ``grown``: its :meth:`grown`, where the caller has made it already).
+
+        The lists are made on the host (``np.flatnonzero``: ascending flat indices) and copied in
+        by one kernel. They were made by a kernel (counts per row, a scan, a scatter) from a ring
+        field written with ``from_numpy``: sphere3d 13.9 ms a regrid, 10 of them the write."""
+        self.ring_mask = self._ring(self.grown(self._mask) if grown is None else grown)
+        ring, cover = np.flatnonzero(self.ring_mask), np.flatnonzero(self._mask)
+        self.n_ring, self.n_cover = ring.size, cover.size
+        self._load_lists(_joined(ring, cover), ring.size, cover.size)
 
     def _ring(self, grown: np.ndarray) -> np.ndarray:
         """The ghost cells of the region (from the host's copy of ``covered``) on the padded grid:
@@ -100,7 +113,7 @@ class Region:
         along the other axes. (It was a kernel over the padded grid that looked at each cell's
         3^d neighbours: sphere3d's :meth:`lists` took 40 ms with it, 20 ms with this.)"""
         m, d = self._mask, self.dim
-        out = np.zeros((self.ensemble, *self.padded), dtype=np.uint8)
+        out = np.zeros((self.ensemble, *self.padded), dtype=bool)
         inner = (slice(None),) + (slice(1, -1),) * d
         out[inner] = grown & ~m
         for a in range(d):
@@ -164,7 +177,7 @@ class Region:
     @ti.func
     def ring_cell(self, i):
         """The member-first index of entry ``i`` of ``ring_list``, and whether it is a grid cell."""
-        P = self.unflatten(self.ring_list[i], ti.static(self.ring.shape))
+        P = self.unflatten(self.ring_list[i], ti.static(self.ring_mask.shape))
         J = P - 1
         J[0] = P[0]
         return J, self.inside(ti.Vector([J[a + 1] for a in ti.static(range(self.dim))]))
@@ -187,31 +200,10 @@ class Region:
         return due
 
     @ti.kernel
-    def _list(self, flags: ti.template(), out: ti.template()) -> ti.i32:
-        """Write the flat indices of the nonzero ``flags``, ascending, to the front of ``out``
-        (per-row counts along the last axis, an exclusive scan over rows, a scatter); return how
-        many. (Rows, not fixed blocks of the flat index: a row's cells are reached by adding 1,
-        with no division per cell.)"""
-        rows = ti.static(math.prod(flags.shape[:-1]))
-        L, last = ti.static(flags.shape[-1], len(flags.shape) - 1)
-        for r in range(rows):
-            R = self.unflatten(r, ti.static(flags.shape[:-1]))
-            J = ti.Vector([R[b] for b in ti.static(range(last))] + [0])
-            c = 0
-            for j in range(L):
-                J[last] = j
-                c += ti.cast(flags[J] != 0, ti.i32)
-            self.row[0, r] = c
-        ti.loop_config(serialize=True)  # the scan (grid.exclusive_scan: a serial task)
-        for _ in range(1):
-            self.listed[None] = exclusive_scan(self.row, 0, rows)
-        for r in range(rows):
-            R = self.unflatten(r, ti.static(flags.shape[:-1]))
-            J = ti.Vector([R[b] for b in ti.static(range(last))] + [0])
-            k = self.row[0, r]
-            for j in range(L):
-                J[last] = j
-                if flags[J] != 0:
-                    out[k] = r * L + j
-                    k += 1
-        return self.listed[None]
+    def _load_lists(self, flat: ti.types.ndarray(dtype=ti.i32, ndim=1), n_ring: ti.i32, n_cover: ti.i32):
+        """``ring_list`` and ``cover_list`` from ``flat``: the first ``n_ring`` entries, then ``n_cover``."""
+        for i in range(n_ring + n_cover):
+            if i < n_ring:
+                self.ring_list[i] = flat[i]
+            else:
+                self.cover_list[i - n_ring] = flat[i]
