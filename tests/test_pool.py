@@ -1,4 +1,4 @@
-"""The particle pools: compaction against NumPy (order kept, across block edges), settling what was
+"""The particle pools: the members' total, compaction against NumPy (order kept, across block edges), settling what was
 appended, growth that keeps the particles, the one capacity rule against Poisson fluctuations, and
 the pointer layout's moves between blocks (scan, periodic wrap, growth, release)."""
 import math
@@ -17,6 +17,15 @@ def _filled(E, cap, n, rng):
     pid = rng.integers(0, 2**32, size=(2, E, cap, 2), dtype=np.uint32)
     p.load(x, pid, np.stack([n, np.zeros_like(n)]))
     return p, x, pid
+
+
+@pytest.mark.parametrize("E", [3, 40])  # read one by one, and copied at once
+def test_total_sums_a_row_of_member_counts(E):
+    counts = ti.field(ti.i32, shape=(2, E))
+    values = np.random.default_rng(E).integers(0, 2**30, size=(2, E), dtype=np.int32)
+    counts.from_numpy(values)
+    assert pool.total(counts, (1,)) == values[1].sum(dtype=np.int64)
+    assert pool.total(counts, (0,)) == values[0].sum(dtype=np.int64)
 
 
 def test_compaction_keeps_the_marked_slots_in_order():

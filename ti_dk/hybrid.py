@@ -512,6 +512,6 @@ class HybridSolver(RegionSolver):
         if self.n_cover:  # otherwise the last step was a plain SPDE step
             d["boundary_inflow"] = d["boundary_inflow"] + c.wall_inflow[None] + c.p_inflow[None]
             d["clamped_steps"] = int(c.clamped[None])
-        d["particles"] = int(self.pool.kept.to_numpy().sum(dtype=np.int64))
+        d["particles"] = pool.total(self.pool.kept)
         d["regrid_change"] = self._change
         return d

@@ -212,7 +212,7 @@ class ParticleSolver(Solver):
 
     def diagnostics(self) -> dict[str, float]:
         return {
-            "mass": float(self.pool.n.to_numpy()[self.cur].sum(dtype=np.int64)),
+            "mass": float(pool.total(self.pool.n, (self.cur,))),
             "min_density": math.nan,  # not binned every step; counts are never negative
             "negative_cells": 0,
             "boundary_inflow": float(self.inflow[None]),
