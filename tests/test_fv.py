@@ -151,3 +151,43 @@ def test_fused_1d_step_equals_the_three_kernel_step(boundary):
         assert da["negative_cells"] == db["negative_cells"] and da["min_density"] == db["min_density"]
         assert da["mass"] == pytest.approx(db["mass"], rel=1e-13)
         assert da["boundary_inflow"] == pytest.approx(db["boundary_inflow"], rel=1e-12, abs=1e-12)
+
+
+def _heat_step(q, dx, dt, boundary, reservoir):
+    """One step of eq. (10) in NumPy, face by face: F = ½ Δq̄/Δx across each face (the reservoir
+    value beyond a Dirichlet side, the opposite cell across a periodic one, none through Neumann)."""
+    out = q.copy()
+    for a, (h, (lo, hi), (r_lo, r_hi)) in enumerate(zip(dx, boundary, reservoir)):
+        qm = np.moveaxis(q, a, 0)
+        n = qm.shape[0]
+        left = np.concatenate([qm[-1:] if lo == "periodic" else np.full((1, *qm.shape[1:]), r_lo), qm])
+        right = np.concatenate([qm, qm[:1] if hi == "periodic" else np.full((1, *qm.shape[1:]), r_hi)])
+        F = 0.5 / h * (right - left)  # faces 0 … n
+        if lo == "neumann":
+            F[0] = 0.0
+        if hi == "neumann":
+            F[n] = 0.0
+        out += np.moveaxis(dt * (F[1:] - F[:-1]) / h, 0, a)
+    return out
+
+
+@pytest.mark.parametrize("cells, boundary", [
+    ((30,), [["dirichlet", "neumann"]]),
+    ((9, 8), [["neumann", "dirichlet"], ["periodic", "periodic"]]),
+    ((5, 6, 7), [["dirichlet", "dirichlet"], ["neumann", "neumann"], ["periodic", "periodic"]]),
+])
+def test_mean_density_follows_the_discrete_heat_equation(cells, boundary):
+    """q̄ (eq. 10, advanced beside q for the hybrid's ghosts and the Gaussian scheme's amplitude)
+    against the same scheme written face by face in NumPy, every boundary kind on some axis."""
+    reservoir = [[2.0, 3.0]] * len(cells)
+    grid = _grid(cells, boundary=boundary, reservoir_ppc=reservoir)
+    dt = 0.2 * min(grid.dx) ** 2
+    s = SPDESolver(grid, dt, 2, key=seed_key(3), real=ti.f64, track_mean=True)
+    ppc = np.random.default_rng(2).uniform(0.0, 8.0, size=cells)
+    s.initialize(ppc)
+    q = ppc / grid.cell_volume
+    for n in range(6):
+        s.fluxes(n)
+        s.update()
+        q = _heat_step(q, grid.dx, dt, [tuple(b) for b in boundary], grid.reservoir)
+    np.testing.assert_allclose(s.qbar.to_numpy()[0], q, rtol=1e-12, atol=0)
