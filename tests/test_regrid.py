@@ -64,6 +64,7 @@ def test_tag_and_grow_respect_periodic_wrap():
     ppc[5] = -0.5  # negative cells are always tagged
     t = regrid.tag(ppc, threshold=5.0)
     assert np.flatnonzero(t).tolist() == [0, 5]
+    assert np.flatnonzero(regrid.tag(ppc, threshold=0.0)).tolist() == [5]  # threshold 0: the negative only
     assert np.flatnonzero(regrid.grow(t, 1, (True,))).tolist() == [0, 1, 4, 5, 6, 9]
     assert np.flatnonzero(regrid.grow(t, 2, (False,))).tolist() == [0, 1, 2, 3, 4, 5, 6, 7]
     t2 = np.zeros((6, 6), dtype=bool)

@@ -37,8 +37,9 @@ class RegridParams:
 
 
 def tag(ppc: np.ndarray, threshold: float) -> np.ndarray:
-    """Cells whose SPDE content ``ppc`` (particles per cell) is below ``threshold`` or negative."""
-    return (ppc < threshold) | (ppc < 0)
+    """Cells whose SPDE content ``ppc`` (particles per cell) is below ``threshold`` or negative
+    (one comparison: below ``max(threshold, 0)``)."""
+    return ppc < max(threshold, 0.0)
 
 
 def grow(tags: np.ndarray, width: int, periodic: tuple[bool | None, ...]) -> np.ndarray:
