@@ -82,8 +82,7 @@ def cell_of(x, h, n):
 @ti.func
 def exclusive_scan(a: ti.template(), e, n):
     """Replace ``a[e, 0:n]`` by its exclusive prefix sums, serially, and return their total: the
-    middle pass of every count–scan–scatter (pool compaction, the region's cell lists, the
-    particles' cell-order sort).
+    middle pass of every count–scan–scatter (pool compaction, the particles' cell-order sort).
 
     Call it from a loop under ``ti.loop_config(serialize=True)``, as every short loop of a kernel
     (over a few members) should be: a parallel loop is a task of Taichi's CPU thread pool, whose

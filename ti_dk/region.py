@@ -1,5 +1,6 @@
-"""The hybrid's particle region on the device (paper §3.2): covered mask, ghost ring, the flat
-lists of ring and covered cells, the on-demand low mask and each member's boxes.
+"""The hybrid's particle region (paper §3.2): on the device the covered mask, the flat lists of
+ring and covered cells and the on-demand low mask; on the host a copy of the mask, the ghost ring
+(from which the lists are made) and each member's boxes.
 
 The boxes come from :mod:`regrid` (host NumPy); everything downstream reads the cell mask, so
 nothing depends on how the region was cut into boxes.
