@@ -81,13 +81,13 @@ def cluster(tags: np.ndarray, p: RegridParams) -> list[Box]:
             continue
         box, sigs = found
         lo, hi = box
-        size = np.array(hi) - np.array(lo)
-        splittable = size >= 2 * p.min_box
-        if int(sigs[0].sum()) / int(size.prod()) >= p.efficiency and np.all(size <= p.max_box) \
-                or not splittable.any():
+        size = tuple(b - a for a, b in zip(lo, hi))  # plain ints: most boxes need no array
+        if int(sigs[0].sum()) / math.prod(size) >= p.efficiency and max(size) <= p.max_box \
+                or max(size) < 2 * p.min_box:
             boxes.append(box)
             continue
-        axis, cut = _cut(sigs, size, splittable, p)
+        size = np.array(size)
+        axis, cut = _cut(sigs, size, size >= 2 * p.min_box, p)
         for part in ((lo, (*hi[:axis], lo[axis] + cut, *hi[axis + 1:])),
                      ((*lo[:axis], lo[axis] + cut, *lo[axis + 1:]), hi)):
             todo.append(_bounding(tags, *part))
@@ -101,15 +101,17 @@ def _bounding(tags: np.ndarray, lo, hi) -> tuple[Box, list[np.ndarray]] | None:
     are read from them, where each used to reduce the box again (the initial sphere3d region
     clustered in 100–114 ms instead of 124–130; ellipse2d 4.3–4.5 instead of 4.7–4.8)."""
     d = tags.ndim
+    total = np.add.reduce  # the ufunc itself: ndarray.sum's Python wrapper cost as much as the sums here
     sub = tags[tuple(slice(a, b) for a, b in zip(lo, hi))]
-    last = sub.sum(axis=tuple(range(d - 1)), dtype=np.intp)
+    last = total(sub, axis=tuple(range(d - 1)), dtype=np.intp)
     if not last.any():
         return None
-    rows = sub.sum(axis=d - 1, dtype=np.intp)
-    sigs = [rows.sum(axis=tuple(b for b in range(d - 1) if b != a), dtype=np.intp) for a in range(d - 1)] + [last]
+    rows = total(sub, axis=d - 1, dtype=np.intp)
+    sigs = [rows, last] if d == 2 else \
+        [total(rows, axis=tuple(b for b in range(d - 1) if b != a), dtype=np.intp) for a in range(d - 1)] + [last]
     new_lo, new_hi = [], []
     for a in range(d):
-        idx = np.flatnonzero(sigs[a])
+        idx = sigs[a].nonzero()[0]
         first, end = int(idx[0]), int(idx[-1]) + 1
         sigs[a] = sigs[a][first:end]  # the planes outside the box along other axes hold no tags
         new_lo.append(lo[a] + first)
@@ -119,16 +121,17 @@ def _bounding(tags: np.ndarray, lo, hi) -> tuple[Box, list[np.ndarray]] | None:
 
 def _cut(sigs: list[np.ndarray], size: np.ndarray, splittable: np.ndarray, p: RegridParams) -> tuple[int, int]:
     """Axis and offset of the cut for a box that is not accepted (see :func:`cluster`), from its
-    signatures ``sigs``."""
+    signatures ``sigs``. (``nonzero()[0]`` rather than ``np.flatnonzero``: the same for these 1D
+    arrays, without its Python wrapper, which cost as much as the work on these small boxes.)"""
     m = p.min_box
-    oversize = np.flatnonzero(size > p.max_box)
+    oversize = (size > p.max_box).nonzero()[0]
     if oversize.size:  # too long: halve the longest side first
         a = int(oversize[np.argmax(size[oversize])])
         return a, int(size[a]) // 2
     # 1. holes: a plane without tags, closest to the middle of the box
     best = None
-    for a in np.flatnonzero(splittable):
-        for i in np.flatnonzero(sigs[a] == 0):
+    for a in splittable.nonzero()[0]:
+        for i in (sigs[a] == 0).nonzero()[0]:
             if m <= i <= size[a] - m:
                 score = abs(i - size[a] / 2)
                 if best is None or score < best[0]:
@@ -137,7 +140,7 @@ def _cut(sigs: list[np.ndarray], size: np.ndarray, splittable: np.ndarray, p: Re
         return best[1], best[2]
     # 2. inflection: the largest jump of the second difference where it changes sign
     best = None
-    for a in np.flatnonzero(splittable):
+    for a in splittable.nonzero()[0]:
         lap = np.zeros(size[a])
         s = sigs[a].astype(float)
         lap[1:-1] = s[2:] - 2 * s[1:-1] + s[:-2]
@@ -149,7 +152,7 @@ def _cut(sigs: list[np.ndarray], size: np.ndarray, splittable: np.ndarray, p: Re
     if best:
         return best[1], best[2]
     # 3. bisect the longest splittable side
-    a = int(np.flatnonzero(splittable)[np.argmax(size[splittable])])
+    a = int(splittable.nonzero()[0][np.argmax(size[splittable])])
     return a, int(size[a]) // 2
 
 
