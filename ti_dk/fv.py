@@ -187,13 +187,12 @@ class SPDESolver(Solver):
     # -- the split step (public: the hybrid runs its particles between these) ------------
     @ti.kernel
     def fluxes(self, step: ti.u32):
-        """First part of step ``step``: every face flux F of eq. (8) into :attr:`flux` (and the
-        right-hand side of eq. 10 for q̄ into :attr:`dqbar`, made at each cell from q̄'s fluxes
-        through both its faces per axis: a scalar per cell where a field of face fluxes took
-        ``dim`` values, 35 MB less at 128³, in the same time and with the same bits in the pinned
-        runs), and the Dirichlet
-        inflow they carry into :attr:`inflow`; q is
-        not changed. Noise keyed on (seed, member, ``step``, face)."""
+        """First part of step ``step``: every face flux F of eq. (8) into :attr:`flux`, and the
+        Dirichlet inflow they carry into :attr:`inflow`; q is not changed. Noise keyed on (seed,
+        member, ``step``, face). With q̄, also the right-hand side of eq. (10) into :attr:`dqbar`,
+        made at each cell from q̄'s fluxes through both its faces per axis (a scalar per cell
+        where a field of face fluxes took ``dim`` values: 35 MB less at 128³, in the same time and
+        with the same bits in the pinned runs)."""
         self.inflow[None] = 0.0
         if ti.static(self.gaussian):
             for J in ti.grouped(self.root):  # q̄'s square roots, once per cell
