@@ -299,6 +299,7 @@ class HybridSolver(RegionSolver):
         self.dim, self.n = grid.dim, grid.cells
         self.walker = Walker(grid, spde.dt / substeps, spde.real, spde.key, spde.member0)  # one particle sub-step
         self.regions = Region(grid, self.ensemble, params)
+        spde.replaced_in(self.regions.covered)  # covered cells take their counts at each sync (step 4)
         self.sampler = Sampler(spde, self.regions, self.walker, ghost_profile, substeps)
         self.coupling = Coupling(spde, self.regions, self.sampler, self.walker)
         self.pool = pool.make(pool_layout, grid, self.ensemble, self.real)  # flat or pointer (pool.LAYOUTS)
