@@ -194,8 +194,8 @@ def test_mean_density_follows_the_discrete_heat_equation(cells, boundary):
 
 
 @pytest.mark.parametrize("cells, boundary", [
-    ((40,), "periodic"),
-    ((12, 10), [["dirichlet", "neumann"], ["periodic", "periodic"]]),
+    ((41,), "periodic"),  # groups of G = 4 cells, the last one partial
+    ((12, 9), [["dirichlet", "neumann"], ["periodic", "periodic"]]),  # G = 2, a partial group per row
     ((6, 5, 7), [["periodic", "periodic"], ["neumann", "dirichlet"], ["dirichlet", "dirichlet"]]),
 ])
 def test_replaced_cells_change_no_other_cell_or_face(cells, boundary):
