@@ -113,7 +113,7 @@ class SPDESolver(Solver):
         self.diagnose()
 
     def density(self) -> np.ndarray:
-        """Number density of every member, ``(ensemble, *cells)``, float64."""
+        """Number density of every member, ``(ensemble, *cells)``, float64 (a fresh array: callers may change it)."""
         return self.q.to_numpy().astype(np.float64, copy=False)
 
     def diagnostics(self) -> dict[str, float]:

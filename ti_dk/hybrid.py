@@ -404,7 +404,7 @@ class HybridSolver(RegionSolver):
 
     def regrid(self, n: int) -> None:
         """New region from the SPDE density at step ``n`` (tag, buffer, Berger–Rigoutsos)."""
-        ppc = self.spde.density() * self.grid.cell_volume
+        ppc = self._content()
         masks, tagged = self.regions.plan(ppc)
         self._set_region(masks, n, ppc, sort=True)
         self._log(n, tagged, 0)
@@ -423,10 +423,18 @@ class HybridSolver(RegionSolver):
         this cut the negative cell-steps of ellipse2d at threshold 5 from 47 to 1 (an FV step of
         4.7 σ from 5.6 particles); the cap alone to 8.
         """
-        ppc = self.spde.density() * self.grid.cell_volume
+        ppc = self._content()
         masks, members = self.regions.plan_extension()
         self._set_region(masks, n, ppc)
         self._log(n, int(regrid.tag(ppc, self.params.threshold).sum()), members)
+
+    def _content(self) -> np.ndarray:
+        """The SPDE content of every cell, ``q V_c`` (particles per cell, float64), scaled in place:
+        :meth:`SPDESolver.density` returns a fresh array, so a regrid makes one grid-sized array
+        here, not two (17 MB each at 128³, at each of sphere3d's 579 regrids)."""
+        ppc = self.spde.density()
+        ppc *= self.grid.cell_volume
+        return ppc
 
     def _log(self, n: int, tagged: int, on_demand: int) -> None:
         covered = self.n_cover
@@ -438,7 +446,7 @@ class HybridSolver(RegionSolver):
     def set_region(self, masks: np.ndarray, n: int) -> None:
         """Make ``masks`` (``(ensemble, *cells)`` booleans) the particle region at step ``n``, its
         diagnostics up to date (a region set from outside, between steps)."""
-        self._set_region(masks, n, self.spde.density() * self.grid.cell_volume)
+        self._set_region(masks, n, self._content())
         self.spde.diagnose()
 
     def _set_region(self, masks: np.ndarray, n: int, ppc: np.ndarray, sort: bool = False) -> None:
