@@ -71,7 +71,6 @@ class SPDESolver(Solver):
         self.n_negative = ti.field(ti.i64, shape=())  # cells (over all members) with q < 0
         self.inflow = ti.field(ti.f64, shape=())  # particles entering through Dirichlet sides this step
         self.replaced = None  # u8 field like q: 1 where the caller overwrites q after each step (see replaced_in)
-        self.replacing = False  # whether there is such a field (Taichi scope takes no "is not None")
 
     # -- public -------------------------------------------------------------------------
     def initialize(self, ppc: np.ndarray) -> None:
@@ -91,7 +90,12 @@ class SPDESolver(Solver):
         math compiles the kernel anew). Call before the first step (the kernels compile the
         choice in). sphere3d: a third of the cells are such, the hybrid's flux pass 81 → 69 ms
         (medians of 12)."""
-        self.replaced, self.replacing = mask, True
+        self.replaced = mask
+
+    @property
+    def replacing(self) -> bool:
+        """Whether :meth:`replaced_in` was called (for ``ti.static``: Taichi scope takes no ``is not None``)."""
+        return self.replaced is not None
 
     def step(self, n: int) -> None:
         """Advance all members from step ``n`` to ``n + 1``."""
