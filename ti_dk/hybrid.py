@@ -68,39 +68,50 @@ class Coupling:
         self.clamped[None] += self.sampler.clamped[None]  # the ghosts' clamped steps, all of them
         for u in range(pool.units(cur)):
             e, U, lo, hi = pool.unit(cur, u)
-            for p in range(lo, hi):
-                I = pool.index(cur, U, p)
-                ident = pool.pid[I]
-                ghost = ident[1] == ti.u32(step + 1)
-                y, alive, clamped = pool.x[I], True, 0
-                if not ghost:
-                    y, alive, clamped = self.walker.move(y, e, ident[0], ident[1], ti.u32(step))
-                if clamped:  # rare (p ≈ erfc(Δx/√(2Δt)) per axis): no atomic on the shared counter otherwise
-                    self.clamped[None] += clamped
-                D = self._cell(e, y)
-                keep = alive and self.region.covered[D] != 0
-                pool.x[I] = y
-                pool.mark(I, keep, D)
-                if keep:
-                    counted = True
-                    if ghost:
-                        O = self.sampler.origin(ident[0])
-                        if self.region.inside(O):
-                            k = self.sampler.index(ident[0])
-                            if k < 64:  # settled by cap_entries
-                                ti.atomic_or(self.entered[self.region.member(e, O)], ti.u64(1) << ti.cast(k, ti.u64))
-                                counted = False
-                            else:
-                                self.dN[self.region.member(e, O)] -= 1
-                        else:
-                            self.p_inflow[None] += 1
-                    if last and counted:
-                        self.count[D] += 1
-                elif not ghost:
-                    if alive:
-                        self.dN[D] += 1
+            for k in range((hi - lo + 1) // 2):  # two particles at once (particles.LANES)
+                p0 = lo + 2 * k
+                p1 = ti.min(p0 + 1, hi - 1)  # the last of an odd range is walked twice, accounted once
+                I0, I1 = pool.index(cur, U, p0), pool.index(cur, U, p1)
+                ident0, ident1 = pool.pid[I0], pool.pid[I1]
+                x0, x1 = pool.x[I0], pool.x[I1]
+                y0, alive0, clamped0, y1, alive1, clamped1 = self.walker.move_pair(x0, x1, e, ident0, ident1, ti.u32(step))
+                self._account(pool, I0, e, ident0, x0, y0, alive0, clamped0, step, last)
+                if p1 > p0:
+                    self._account(pool, I1, e, ident1, x1, y1, alive1, clamped1, step, last)
+
+    @ti.func
+    def _account(self, pool: ti.template(), I, e, ident, x, y, alive, clamped, step, last):
+        """A walked slot of :meth:`walk`: store its step (a ghost of this sub-step was walked by the
+        fill: it keeps ``x``), mark it to keep if it ends in the region, and count the crossing."""
+        ghost = ident[1] == ti.u32(step + 1)
+        if ghost:
+            y, alive, clamped = x, True, 0
+        if clamped:  # rare (p ≈ erfc(Δx/√(2Δt)) per axis): no atomic on the shared counter otherwise
+            self.clamped[None] += clamped
+        D = self._cell(e, y)
+        keep = alive and self.region.covered[D] != 0
+        pool.x[I] = y
+        pool.mark(I, keep, D)
+        if keep:
+            counted = True
+            if ghost:
+                O = self.sampler.origin(ident[0])
+                if self.region.inside(O):
+                    k = self.sampler.index(ident[0])
+                    if k < 64:  # settled by cap_entries
+                        ti.atomic_or(self.entered[self.region.member(e, O)], ti.u64(1) << ti.cast(k, ti.u64))
+                        counted = False
                     else:
-                        self.p_inflow[None] -= 1
+                        self.dN[self.region.member(e, O)] -= 1
+                else:
+                    self.p_inflow[None] += 1
+            if last and counted:
+                self.count[D] += 1
+        elif not ghost:
+            if alive:
+                self.dN[D] += 1
+            else:
+                self.p_inflow[None] -= 1
 
     @ti.func
     def _row(self, R):
