@@ -7,6 +7,7 @@ import taichi as ti
 
 from . import rng
 from .grid import DIRICHLET, NEUMANN, PERIODIC, Grid, across, face_kind, numpy_dtype
+from .particles import LANES
 from .solver import Solver
 
 
@@ -236,22 +237,33 @@ class SPDESolver(Solver):
         if ti.static(self.gaussian):
             for J in ti.grouped(self.root):  # q̄'s square roots, once per cell
                 self.root[J] = ti.sqrt(ti.max(self.qbar[J], self.real(0.0)))
-        G, last = ti.static(self.group, self.dim)
-        for K in ti.grouped(ti.ndrange(self.ensemble, *self.groups)):  # the lower faces of G cells
-            J = K
-            J[last] = K[last] * G
-            if not self._inside_replaced(J):  # a group inside the replaced cells makes no flux, draws no normal
-                bits = self._face_noise(J, step)
-                I = J
-                for g in ti.static(range(G)):
-                    if ti.static(G == 1) or I[last] < self.n[last - 1]:
-                        for a in ti.static(range(self.dim)):
-                            self.flux[I][a] = self._face_flux(I, a, bits[g * self.dim + a])
-                    I[last] += 1
-            if ti.static(self.track_mean):
-                if J[0] == 0:  # q̄'s right-hand side, both faces per axis (no face field)
+        G, last, L, n = ti.static(self.group, self.dim, LANES, self.n[-1])
+        for K in ti.grouped(ti.ndrange(self.ensemble, *self.groups[:-1], -(-self.groups[-1] // L))):
+            words = ti.Matrix.zero(ti.u32, L, 4)  # L groups of G cells along the last axis, Philox calls first
+            live = ti.Vector.zero(ti.i32, L)
+            for h in ti.static(range(L)):
+                J = K
+                J[last] = (K[last] * L + h) * G
+                if J[last] < n and not self._inside_replaced(J):  # inside the replaced cells: no flux, no normal
+                    live[h] = 1
+                    bits = self._face_noise(J, step)
+                    for w in ti.static(range(4)):
+                        words[h, w] = bits[w]
+            for h in ti.static(range(L)):
+                if live[h]:
+                    I = K
+                    I[last] = (K[last] * L + h) * G
                     for g in ti.static(range(G)):
-                        if ti.static(G == 1) or J[last] < self.n[last - 1]:
+                        if ti.static(G == 1) or I[last] < n:
+                            for a in ti.static(range(self.dim)):
+                                self.flux[I][a] = self._face_flux(I, a, words[h, g * self.dim + a])
+                        I[last] += 1
+            if ti.static(self.track_mean):
+                if K[0] == 0:  # q̄'s right-hand side, both faces per axis (no face field)
+                    J = K
+                    J[last] = K[last] * L * G
+                    for g in ti.static(range(L * G)):
+                        if J[last] < n:
                             dq = self.real(0.0)
                             for a in ti.static(range(self.dim)):
                                 dq += (self._mean_flux(self.upper(J, a), a) - self._mean_flux(J, a)) \
