@@ -1,0 +1,79 @@
+"""Two source trees in one process, stepped alternately: per-kernel time of each, same machine state.
+
+    python benchmarks/bench_ab.py --before /path/to/old/tree [--scene sphere3d] [--steps 12] [--threads 2]
+
+On a shared VM whose speed drifts by 20-30 % between runs a minute apart (benchmarks/RESULTS.md),
+before/after figures taken in separate processes cannot resolve a 10 % change. Here both trees'
+``ti_dk`` packages are imported side by side (copied under the names ``ti_dk_before`` and
+``ti_dk_after``: the package uses relative imports only), each builds the scene's solver in the
+same Taichi program, and each step of the one is followed by the same step of the other. Printed:
+the mean wall time of a step of each, and the mean time per step of every kernel task (Taichi's
+kernel profiler) that takes more than 0.3 ms in either, with their ratio.
+"""
+import argparse
+import importlib
+import os
+import shutil
+import sys
+import tempfile
+import time
+
+
+def main():
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--before", required=True, help="an older source tree (e.g. a git archive of main)")
+    p.add_argument("--scene", default="sphere3d")
+    p.add_argument("--steps", type=int, default=12)
+    p.add_argument("--threads", type=int, default=2)
+    args = p.parse_args()
+    here = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    tmp = tempfile.mkdtemp()
+    for name, tree in (("ti_dk_before", args.before), ("ti_dk_after", here)):
+        shutil.copytree(os.path.join(tree, "ti_dk"), os.path.join(tmp, name))
+    os.symlink(os.path.join(here, "scenes"), os.path.join(tmp, "scenes"))  # config.SCENE_DIR: next to the package
+    sys.path.insert(0, tmp)
+
+    import taichi as ti
+    from taichi.lang import impl
+    names = ("ti_dk_before", "ti_dk_after")
+    mods = {k: importlib.import_module(k) for k in names}
+    init = ti.init
+    ti.init = lambda *a, **kw: init(*a, **{**kw, "kernel_profiler": True})
+    mods["ti_dk_after"].init("cpu", args.threads)
+    solvers = {}
+    for k, m in mods.items():
+        sc = m.load_scene(args.scene)
+        solvers[k] = importlib.import_module(k + ".sim").make_solver(sc, sc.initial_ppc)
+    for n in range(3):  # compile
+        for s in solvers.values():
+            s.step(n)
+    wall = dict.fromkeys(names, 0.0)
+    kernels: dict = {}
+    prog = impl.get_runtime().prog
+    for n in range(3, 3 + args.steps):
+        for k, s in solvers.items():
+            ti.sync()
+            ti.profiler.clear_kernel_profiler_info()
+            t = time.perf_counter()
+            s.step(n)
+            ti.sync()
+            wall[k] += time.perf_counter() - t
+            prog.sync_kernel_profiler()
+            prog.update_kernel_profiler()
+            for r in prog.get_kernel_profiler_records():  # "<kernel>_c<id>_<n>_kernel_<task>_<kind>"
+                task = r.name.split("_c")[0] + "_" + r.name.split("_kernel_")[-1]
+                kernels[k, task] = kernels.get((k, task), 0.0) + r.kernel_time
+    steps = args.steps
+    print(f"# {time.strftime('%Y-%m-%d %H:%M')}, {args.scene}, {args.threads} threads, steps 3-{2 + steps}, "
+          f"before={os.path.abspath(args.before)}, after={here}")
+    print("| | before | after | after/before |\n|---|---|---|---|")
+    print(f"| step, ms | {1e3 * wall[names[0]] / steps:.1f} | {1e3 * wall[names[1]] / steps:.1f} | "
+          f"{wall[names[1]] / wall[names[0]]:.3f} |")
+    for task in sorted({t for _, t in kernels}):
+        a, b = (kernels.get((k, task), 0.0) / steps for k in names)
+        if max(a, b) > 0.3:
+            print(f"| {task}, ms | {a:.2f} | {b:.2f} | {b / a if a else float('nan'):.3f} |")
+
+
+if __name__ == "__main__":
+    main()
