@@ -7,7 +7,6 @@ import taichi as ti
 
 from . import rng
 from .grid import DIRICHLET, NEUMANN, PERIODIC, Grid, across, face_kind, numpy_dtype
-from .particles import LANES
 from .solver import Solver
 
 
@@ -51,6 +50,7 @@ class SPDESolver(Solver):
         self.key = key  # the Philox key of the run (rng.seed_key of its seed)
         rng.prepare()
         self.group = max(1, 4 // self.dim)  # cells along the last axis sharing one Philox counter
+        self.lanes = rng.lanes(self.dim)  # counter groups a flux loop iteration takes
         # counter groups per member: the last axis of the padded face grid cut into groups of `group`
         self.groups = (*self.n[:-1], -(-self.n[-1] // self.group))
         self.noise_scale = 1.0 / (dt * grid.cell_volume) ** 0.5  # 1/√(Δt V_c) of eq. (7)
@@ -237,7 +237,7 @@ class SPDESolver(Solver):
         if ti.static(self.gaussian):
             for J in ti.grouped(self.root):  # q̄'s square roots, once per cell
                 self.root[J] = ti.sqrt(ti.max(self.qbar[J], self.real(0.0)))
-        G, last, L, n = ti.static(self.group, self.dim, LANES, self.n[-1])
+        G, last, L, n = ti.static(self.group, self.dim, self.lanes, self.n[-1])
         for K in ti.grouped(ti.ndrange(self.ensemble, *self.groups[:-1], -(-self.groups[-1] // L))):
             words = ti.Matrix.zero(ti.u32, L, 4)  # L groups of G cells along the last axis, Philox calls first
             live = ti.Vector.zero(ti.i32, L)

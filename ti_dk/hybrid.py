@@ -68,16 +68,16 @@ class Coupling:
         self.clamped[None] += self.sampler.clamped[None]  # the ghosts' clamped steps, all of them
         for u in range(pool.units(cur)):
             e, U, lo, hi = pool.unit(cur, u)
-            for k in range((hi - lo + 1) // 2):  # two particles at once (particles.LANES)
-                p0 = lo + 2 * k
-                p1 = ti.min(p0 + 1, hi - 1)  # the last of an odd range is walked twice, accounted once
-                I0, I1 = pool.index(cur, U, p0), pool.index(cur, U, p1)
-                ident0, ident1 = pool.pid[I0], pool.pid[I1]
-                x0, x1 = pool.x[I0], pool.x[I1]
-                y0, alive0, clamped0, y1, alive1, clamped1 = self.walker.move_pair(x0, x1, e, ident0, ident1, ti.u32(step))
-                self._account(pool, I0, e, ident0, x0, y0, alive0, clamped0, step, last)
-                if p1 > p0:
-                    self._account(pool, I1, e, ident1, x1, y1, alive1, clamped1, step, last)
+            L = ti.static(self.walker.lanes)
+            for k in range((hi - lo + L - 1) // L):  # L particles at once, their Philox calls first (rng.lanes)
+                Is = [pool.index(cur, U, ti.min(lo + L * k + l, hi - 1)) for l in ti.static(range(L))]
+                idents = [pool.pid[Is[l]] for l in ti.static(range(L))]
+                bits = [self.walker.bits(e, idents[l][0], idents[l][1], ti.u32(step)) for l in ti.static(range(L))]
+                for l in ti.static(range(L)):
+                    x = pool.x[Is[l]]
+                    y, alive, clamped = self.walker.step_with(x, self.walker.own(bits[l], idents[l][0]), 0)
+                    if ti.static(l == 0) or lo + L * k + l < hi:  # a repeated last slot is accounted once
+                        self._account(pool, Is[l], e, idents[l], x, y, alive, clamped, step, last)
 
     @ti.func
     def _account(self, pool: ti.template(), I, e, ident, x, y, alive, clamped, step, last):

@@ -9,12 +9,6 @@ from .grid import DIRICHLET, NEUMANN, PERIODIC, Grid, cell_of
 from .solver import Solver
 
 
-# counter groups (or particles) one iteration of a walk loop moves: their Philox-4x32-10 calls,
-# about 60 cycles of dependent multiplies each, run side by side in the core; one at a time the
-# walk waits on them (walk3d 48 → 38 ns a particle on one Zen 3 thread; four lanes gained no more)
-LANES = 2
-
-
 @ti.data_oriented
 class Walker:
     r"""The stateless particle numerics shared by the particle and hybrid solvers (ti.funcs only).
@@ -36,6 +30,7 @@ class Walker:
         self.member0 = member0  # global index of member 0 (random numbers are keyed on the global index)
         self.dim = grid.dim
         self.group = max(1, 4 // self.dim)  # consecutive identities sharing one Philox counter
+        self.lanes = rng.lanes(self.dim)  # counter groups (or particles) a walk loop iteration moves
         self.key = key  # the Philox key of the run (rng.seed_key of its seed)
         rng.prepare()
 
@@ -47,7 +42,7 @@ class Walker:
                               ti.math.uvec2(self.key[0], self.key[1]))
 
     @ti.func
-    def _own(self, bits, id0):
+    def own(self, bits, id0):
         """The Philox words of the group with particle ``id0``'s own ``dim`` words first."""
         words = ti.math.uvec4(bits[0], bits[1], bits[2], bits[3])
         if ti.static(self.group > 1):
@@ -64,17 +59,7 @@ class Walker:
 
         Returns the new position, whether it is still in the domain, and the number of clamped axes.
         """
-        return self.step_with(x, self._own(self.bits(e, id0, birth, step), id0), 0)
-
-    @ti.func
-    def move_pair(self, x0, x1, e, ident0, ident1, step):
-        """:meth:`move` of two particles of member ``e`` (``ident``: (id0, birth)), both Philox calls
-        first: the two independent chains overlap in the core (:data:`LANES`). Returns both results."""
-        b0 = self.bits(e, ident0[0], ident0[1], step)
-        b1 = self.bits(e, ident1[0], ident1[1], step)
-        y0, alive0, clamped0 = self.step_with(x0, self._own(b0, ident0[0]), 0)
-        y1, alive1, clamped1 = self.step_with(x1, self._own(b1, ident1[0]), 0)
-        return y0, alive0, clamped0, y1, alive1, clamped1
+        return self.step_with(x, self.own(self.bits(e, id0, birth, step), id0), 0)
 
     @ti.func
     def step_with(self, x, bits, g: ti.template()):
@@ -298,40 +283,35 @@ class ParticleSolver(Solver):
         if ti.static(self.grid.has_dirichlet):  # identities are not slots: one counter per particle
             for u in range(self.pool.units(b)):  # over the particles, not the capacity (pool.ParticlePool.units)
                 e, _, lo, hi = self.pool.unit(b, u)
-                for k in range((hi - lo + 1) // 2):  # two particles at once (LANES)
-                    p0 = lo + 2 * k
-                    p1 = ti.min(p0 + 1, hi - 1)  # the last of an odd range is walked twice, stored once
-                    ident0, ident1 = self.pool.pid[b, e, p0], self.pool.pid[b, e, p1]
-                    y0, alive0, clamped0, y1, alive1, clamped1 = self.walker.move_pair(
-                        x[b, e, p0], x[b, e, p1], e, ident0, ident1, step)
-                    self._moved(b, e, p0, y0, alive0, clamped0)
-                    if p1 > p0:
-                        self._moved(b, e, p1, y1, alive1, clamped1)
+                L = ti.static(self.walker.lanes)
+                for k in range((hi - lo + L - 1) // L):  # L particles at once, their Philox calls first
+                    ps = [ti.min(lo + L * k + l, hi - 1) for l in ti.static(range(L))]  # a repeated last: stored once
+                    idents = [self.pool.pid[b, e, ps[l]] for l in ti.static(range(L))]
+                    bits = [self.walker.bits(e, idents[l][0], idents[l][1], step) for l in ti.static(range(L))]
+                    for l in ti.static(range(L)):
+                        y, alive, clamped = self.walker.step_with(x[b, e, ps[l]], self.walker.own(bits[l], idents[l][0]), 0)
+                        if ti.static(l == 0) or lo + L * k + l < hi:
+                            x[b, e, ps[l]] = y
+                            if clamped:  # rare: an atomic for every particle would cost more than the step
+                                self.clamped[None] += clamped
+                            self.pool.keep[e, ps[l]] = ti.u8(alive)
+                            if not alive:
+                                self.inflow[None] -= 1
         else:  # identity = slot: the G particles of a counter group walk together
-            for e, k in ti.ndrange(self.ensemble, -(-self.capacity // (LANES * G))):
+            L = ti.static(self.walker.lanes)
+            for e, k in ti.ndrange(self.ensemble, -(-self.capacity // (L * G))):
                 n = self.pool.n[b, e]
-                if LANES * G * k < n:  # LANES counter groups at once, their Philox calls first
-                    bits = [self.walker.bits(e, ti.u32(G * (LANES * k + l)), ti.u32(0), step)
-                            for l in ti.static(range(LANES))]
+                if L * G * k < n:  # L counter groups at once, their Philox calls first
+                    bits = [self.walker.bits(e, ti.u32(G * (L * k + l)), ti.u32(0), step) for l in ti.static(range(L))]
                     for g in ti.static(range(G)):
-                        ps = [G * (LANES * k + l) + g for l in ti.static(range(LANES))]
+                        ps = [G * (L * k + l) + g for l in ti.static(range(L))]
                         moved = [self.walker.step_with(x[b, e, ti.min(ps[l], self.capacity - 1)], bits[l], g)
-                                 for l in ti.static(range(LANES))]
-                        for l in ti.static(range(LANES)):
+                                 for l in ti.static(range(L))]
+                        for l in ti.static(range(L)):
                             if ps[l] < n:
                                 x[b, e, ps[l]] = moved[l][0]
                                 if moved[l][2]:
                                     self.clamped[None] += moved[l][2]
-
-    @ti.func
-    def _moved(self, b, e, p, y, alive, clamped):
-        """Store the walk of slot ``p`` (Dirichlet sides: mark the absorbed as not kept)."""
-        self.pool.x[b, e, p] = y
-        if clamped:  # rare: an atomic for every particle would cost more than the step
-            self.clamped[None] += clamped
-        self.pool.keep[e, p] = ti.u8(alive)
-        if not alive:
-            self.inflow[None] -= 1
 
     @ti.kernel
     def _inject(self, b: ti.i32, step: ti.u32):
