@@ -133,8 +133,9 @@ class Walker:
 class ParticleSolver(Solver):
     r"""Brownian walkers with D = ½ for every ensemble member (paper §3, the particle model).
 
-    One step moves each particle by :meth:`Walker.move`, so a particle crosses at most one cell
-    per step and its path never depends on which thread moves it. Walls: periodic
+    One step moves each particle by the step of :meth:`Walker.move` (drawn there as ``bits``,
+    ``own``, ``step_with``, :func:`rng.lanes` counter groups per loop iteration), so a particle
+    crosses at most one cell per step and its path never depends on which thread moves it. Walls: periodic
     sides wrap, Neumann sides reflect, Dirichlet sides absorb what leaves and inject what a
     reservoir ghost layer at the reservoir density (sampled afresh each step) walks in.
 
