@@ -68,16 +68,11 @@ class Coupling:
         self.clamped[None] += self.sampler.clamped[None]  # the ghosts' clamped steps, all of them
         for u in range(pool.units(cur)):
             e, U, lo, hi = pool.unit(cur, u)
-            L = ti.static(self.walker.lanes)
-            for k in range((hi - lo + L - 1) // L):  # L particles at once, their Philox calls first (rng.lanes)
-                Is = [pool.index(cur, U, ti.min(lo + L * k + l, hi - 1)) for l in ti.static(range(L))]
-                idents = [pool.pid[Is[l]] for l in ti.static(range(L))]
-                bits = [self.walker.bits(e, idents[l][0], idents[l][1], ti.u32(step)) for l in ti.static(range(L))]
-                for l in ti.static(range(L)):
-                    x = pool.x[Is[l]]
-                    y, alive, clamped = self.walker.step_with(x, self.walker.own(bits[l], idents[l][0]), 0)
-                    if ti.static(l == 0) or lo + L * k + l < hi:  # a repeated last slot is accounted once
-                        self._account(pool, Is[l], e, idents[l], x, y, alive, clamped, step, last)
+            for k in range(self.walker.rounds(lo, hi)):
+                for I, ident, x, y, alive, clamped, own in ti.static(
+                        self.walker.lanes_at(pool, cur, U, e, lo, hi, k, ti.u32(step))):
+                    if own:  # a repeated last slot is accounted once
+                        self._account(pool, I, e, ident, x, y, alive, clamped, step, last)
 
     @ti.func
     def _account(self, pool: ti.template(), I, e, ident, x, y, alive, clamped, step, last):

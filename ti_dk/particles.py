@@ -62,6 +62,30 @@ class Walker:
         return self.step_with(x, self.own(self.bits(e, id0, birth, step), id0), 0)
 
     @ti.func
+    def rounds(self, lo, hi):
+        """Iterations of a walk over the slots ``[lo, hi)`` that moves :attr:`lanes` slots at a time
+        (:meth:`lanes_at`)."""
+        return (hi - lo + self.lanes - 1) // self.lanes
+
+    @ti.func
+    def lanes_at(self, pool: ti.template(), b, U, e, lo, hi, k, step):
+        """Iteration ``k`` of :meth:`rounds` over the slots ``[lo, hi)`` of unit ``U`` in buffer ``b`` of
+        ``pool`` (member ``e``): its :attr:`lanes` slots ``lo + L·k + l``, their Philox calls made
+        first (:func:`rng.lanes`), each moved by :meth:`move`. Past ``hi`` a lane repeats the last slot.
+
+        Returns a list with one tuple per lane, ``(I, ident, x, y, alive, clamped, own)``: the
+        slot's index in ``pool``, identity and position, :meth:`move`'s result, and whether the
+        lane is the slot's own (store and count only then; the repeats of the last slot are not).
+        """
+        L = ti.static(self.lanes)
+        Is = [pool.index(b, U, ti.min(lo + L * k + l, hi - 1)) for l in ti.static(range(L))]
+        idents = [pool.pid[Is[l]] for l in ti.static(range(L))]
+        bits = [self.bits(e, idents[l][0], idents[l][1], step) for l in ti.static(range(L))]
+        moved = [self.step_with(pool.x[Is[l]], self.own(bits[l], idents[l][0]), 0) for l in ti.static(range(L))]
+        return [(Is[l], idents[l], pool.x[Is[l]], moved[l][0], moved[l][1], moved[l][2], lo + L * k + l < hi)
+                for l in ti.static(range(L))]
+
+    @ti.func
     def step_with(self, x, bits, g: ti.template()):
         """The step of :meth:`move` from the words ``bits[g·dim + a]`` (``g`` a compile-time slot)."""
         y = x
@@ -283,19 +307,15 @@ class ParticleSolver(Solver):
         x = ti.static(self.pool.x)
         if ti.static(self.grid.has_dirichlet):  # identities are not slots: one counter per particle
             for u in range(self.pool.units(b)):  # over the particles, not the capacity (pool.ParticlePool.units)
-                e, _, lo, hi = self.pool.unit(b, u)
-                L = ti.static(self.walker.lanes)
-                for k in range((hi - lo + L - 1) // L):  # L particles at once, their Philox calls first
-                    ps = [ti.min(lo + L * k + l, hi - 1) for l in ti.static(range(L))]  # a repeated last: stored once
-                    idents = [self.pool.pid[b, e, ps[l]] for l in ti.static(range(L))]
-                    bits = [self.walker.bits(e, idents[l][0], idents[l][1], step) for l in ti.static(range(L))]
-                    for l in ti.static(range(L)):
-                        y, alive, clamped = self.walker.step_with(x[b, e, ps[l]], self.walker.own(bits[l], idents[l][0]), 0)
-                        if ti.static(l == 0) or lo + L * k + l < hi:
-                            x[b, e, ps[l]] = y
+                e, U, lo, hi = self.pool.unit(b, u)
+                for k in range(self.walker.rounds(lo, hi)):
+                    for I, _ident, _x, y, alive, clamped, own in ti.static(
+                            self.walker.lanes_at(self.pool, b, U, e, lo, hi, k, step)):
+                        if own:
+                            x[I] = y
                             if clamped:  # rare: an atomic for every particle would cost more than the step
                                 self.clamped[None] += clamped
-                            self.pool.keep[e, ps[l]] = ti.u8(alive)
+                            self.pool.keep[e, I[2]] = ti.u8(alive)
                             if not alive:
                                 self.inflow[None] -= 1
         else:  # identity = slot: the G particles of a counter group walk together
