@@ -58,6 +58,37 @@ def test_holes_split_disjoint_blobs_exactly():
     assert regrid.efficiency(boxes, _blobs()) == 1.0
 
 
+def _rows(*counts):
+    """Tags whose signature along axis 0 is ``counts`` (row i tagged in its first counts[i] of 3
+    columns, too few to cut with ``min_box`` 2)."""
+    return np.arange(3) < np.array(counts)[:, None]
+
+
+def _quads():
+    t = np.zeros((10, 10), dtype=bool)
+    t[:4, :4] = t[:4, 6:] = t[6:, :4] = t[6:, 6:] = True  # the best holes at 5 on both axes
+    return t
+
+
+def _plus():
+    t = np.zeros((9, 9), dtype=bool)
+    t[3:6, :] = t[:, 3:6] = True  # no hole; equal second-difference jumps at 3 and 6 on both axes
+    return t
+
+
+@pytest.mark.parametrize("tags, efficiency, boxes", [
+    (_rows(3, 3, 3, 0, 3, 3, 3, 0, 3, 3), 0.85,  # holes at 3 and 7 (the last: [0, 7) would pass)
+     [((8, 0), (10, 3)), ((4, 0), (7, 3)), ((0, 0), (3, 3))]),
+    (_quads(), 0.9, [((6, 6), (10, 10)), ((6, 0), (10, 4)), ((0, 6), (4, 10)), ((0, 0), (4, 4))]),
+    (_rows(1, 1, 2, 2, 1, 1), 0.7, [((2, 0), (6, 2)), ((0, 0), (2, 1))]),  # equal jumps at 2 and 4
+    (_plus(), 0.9, [((6, 3), (9, 6)), ((3, 0), (6, 9)), ((0, 3), (3, 6))]),
+], ids=["hole planes", "hole axes", "inflection planes", "inflection axes"])
+def test_ties_go_to_the_first_axis_then_plane(tags, efficiency, boxes):
+    """Among equal cut candidates the first axis, then the first plane, wins: the boxes and
+    their order are pinned on symmetric sets where the other choice gives other boxes or order."""
+    assert regrid.cluster(tags, RegridParams(efficiency=efficiency, min_box=2, max_box=32)) == boxes
+
+
 def test_tag_and_grow_respect_periodic_wrap():
     ppc = np.full(10, 20.0)
     ppc[0] = 3.0

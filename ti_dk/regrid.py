@@ -8,6 +8,7 @@ region was cut into boxes.
 from __future__ import annotations
 
 import math
+import operator
 from dataclasses import dataclass
 
 import numpy as np
@@ -72,88 +73,113 @@ def cluster(tags: np.ndarray, p: RegridParams) -> list[Box]:
     ``p.max_box``. Otherwise it is cut, in this order of preference: at a hole in a signature
     (a plane with no tags), at the strongest zero crossing of the signature's second
     difference, else in half along its longest side.
+
+    A box in the making is ``(lo, hi, sigs)``: its bounds as lists, shrunk to its tags, and its
+    signatures (tags per plane normal to each axis) as lists of ints. Most boxes are small, and
+    NumPy's per-call overhead on them was most of the cost: the cuts now read the signatures in
+    plain Python, and a cut costs one reduction, over one of its parts (:func:`_parts`), where
+    each part cost two. Same boxes in the same order, 2.3–3.3 times faster (best of 3, old and
+    new alternating on a noisy 2-core host): ellipse2d's 741 recorded clusterings in 0.41–0.55 s
+    instead of 1.10–1.52 s, sphere3d's 3 in 110–181 ms instead of 305–525.
     """
     boxes: list[Box] = []
-    todo = [_bounding(tags, (0,) * tags.ndim, tags.shape)]
+    d = tags.ndim
+    sig = np.add.reduce(tags, axis=tuple(range(1, d)), dtype=np.intp).tolist()
+    if not any(sig):
+        return boxes
+    root = [0] * d, list(tags.shape), [None] * d
+    _shrink(*root, 0, sig)
+    for b, s in _signatures(tags, root[0], root[1], 0):
+        _shrink(*root, b, s)
+    todo = [root]
     while todo:
-        found = todo.pop()
-        if found is None:
+        lo, hi, sigs = todo.pop()
+        size = [b - a for a, b in zip(lo, hi)]
+        n = max(size)
+        if sum(sigs[0]) / math.prod(size) >= p.efficiency and n <= p.max_box or n < 2 * p.min_box:
+            boxes.append((tuple(lo), tuple(hi)))
             continue
-        box, sigs = found
-        lo, hi = box
-        size = tuple(b - a for a, b in zip(lo, hi))  # plain ints: most boxes need no array
-        if int(sigs[0].sum()) / math.prod(size) >= p.efficiency and max(size) <= p.max_box \
-                or max(size) < 2 * p.min_box:
-            boxes.append(box)
-            continue
-        size = np.array(size)
-        axis, cut = _cut(sigs, size, size >= 2 * p.min_box, p)
-        for part in ((lo, (*hi[:axis], lo[axis] + cut, *hi[axis + 1:])),
-                     ((*lo[:axis], lo[axis] + cut, *lo[axis + 1:]), hi)):
-            todo.append(_bounding(tags, *part))
+        todo += _parts(tags, lo, hi, sigs, *_cut(sigs, size, p))
     return boxes
 
 
-def _bounding(tags: np.ndarray, lo, hi) -> tuple[Box, list[np.ndarray]] | None:
-    """The smallest box inside ``[lo, hi)`` that holds all its tags, with its signatures (tags
-    per plane normal to each axis); None if it has none. Two passes over the box make all the
-    signatures (the last axis summed out, then the rest): a box's tagged fraction and its cut
-    are read from them, where each used to reduce the box again (the initial sphere3d region
-    clustered in 100–114 ms instead of 124–130; ellipse2d 4.3–4.5 instead of 4.7–4.8)."""
-    d = tags.ndim
-    total = np.add.reduce  # the ufunc itself: ndarray.sum's Python wrapper cost as much as the sums here
-    sub = tags[tuple(slice(a, b) for a, b in zip(lo, hi))]
-    last = total(sub, axis=tuple(range(d - 1)), dtype=np.intp)
-    if not last.any():
-        return None
-    rows = total(sub, axis=d - 1, dtype=np.intp)
-    sigs = [rows, last] if d == 2 else \
-        [total(rows, axis=tuple(b for b in range(d - 1) if b != a), dtype=np.intp) for a in range(d - 1)] + [last]
-    new_lo, new_hi = [], []
-    for a in range(d):
-        idx = sigs[a].nonzero()[0]
-        first, end = int(idx[0]), int(idx[-1]) + 1
-        sigs[a] = sigs[a][first:end]  # the planes outside the box along other axes hold no tags
-        new_lo.append(lo[a] + first)
-        new_hi.append(lo[a] + end)
-    return (tuple(new_lo), tuple(new_hi)), sigs
+def _parts(tags: np.ndarray, lo: list[int], hi: list[int], sigs: list[list[int]], axis: int,
+           cut: int) -> list[tuple[list[int], list[int], list[list[int]]]]:
+    """The two parts, lower then upper, of a box cut along ``axis`` at offset ``cut``, each
+    shrunk to its tags, with its signatures. Both hold tags: a box's signatures have tags at
+    both ends and ``cut`` is neither 0 nor the side. Along ``axis`` the parts' signatures are
+    slices of the box's; along the others, one reduction gives those of the part with fewer
+    planes and the other part's are the box's minus these (shrinking a box leaves out planes
+    without tags, so its other signatures keep their values)."""
+    d, mid = tags.ndim, lo[axis] + cut
+    parts = [(lo[:], [*hi[:axis], mid, *hi[axis + 1:]], [None] * d),
+             ([*lo[:axis], mid, *lo[axis + 1:]], hi[:], [None] * d)]
+    _shrink(*parts[0], axis, sigs[axis][:cut])
+    _shrink(*parts[1], axis, sigs[axis][cut:])
+    small, large = parts if 2 * cut <= len(sigs[axis]) else parts[::-1]
+    for b, s in _signatures(tags, small[0], small[1], axis):
+        _shrink(*large, b, list(map(operator.sub, sigs[b], s)))
+        _shrink(*small, b, s)
+    return parts
 
 
-def _cut(sigs: list[np.ndarray], size: np.ndarray, splittable: np.ndarray, p: RegridParams) -> tuple[int, int]:
-    """Axis and offset of the cut for a box that is not accepted (see :func:`cluster`), from its
-    signatures ``sigs``. (``nonzero()[0]`` rather than ``np.flatnonzero``: the same for these 1D
-    arrays, without its Python wrapper, which cost as much as the work on these small boxes.)"""
+def _signatures(tags: np.ndarray, lo: list[int], hi: list[int], axis: int) -> list[tuple[int, list[int]]]:
+    """``(b, signature along b)`` of the box ``[lo, hi)`` for every axis ``b`` but ``axis``: one
+    pass over the box sums ``axis`` out, the rest are sums over that."""
+    rest = np.add.reduce(tags[tuple(map(slice, lo, hi))], axis=axis, dtype=np.intp)
+    others = [b for b in range(tags.ndim) if b != axis]
+    if len(others) == 1:
+        return [(others[0], rest.tolist())]
+    return [(b, np.add.reduce(rest, axis=tuple(j for j in range(len(others)) if j != k)).tolist())
+            for k, b in enumerate(others)]
+
+
+def _shrink(lo: list[int], hi: list[int], sigs: list, axis: int, sig: list[int]) -> None:
+    """Shrinks the box ``[lo, hi)`` in place along ``axis`` to the planes from the first to the
+    last with tags in ``sig``, its signature there, and keeps that slice in ``sigs``."""
+    first, end = 0, len(sig)
+    while not sig[first]:
+        first += 1
+    while not sig[end - 1]:
+        end -= 1
+    sigs[axis] = sig[first:end]
+    lo[axis], hi[axis] = lo[axis] + first, lo[axis] + end
+
+
+def _cut(sigs: list[list[int]], size: list[int], p: RegridParams) -> tuple[int, int]:
+    """Axis and offset of the cut for a box of ``size`` that is not accepted (see
+    :func:`cluster`), from its signatures ``sigs``. Among equal candidates the first axis, then
+    the first plane, wins."""
     m = p.min_box
-    oversize = (size > p.max_box).nonzero()[0]
-    if oversize.size:  # too long: halve the longest side first
-        a = int(oversize[np.argmax(size[oversize])])
-        return a, int(size[a]) // 2
-    # 1. holes: a plane without tags, closest to the middle of the box
+    n = max(size)
+    if n > p.max_box:  # too long: halve the longest side first
+        return size.index(n), n // 2
+    axes = [a for a, side in enumerate(size) if side >= 2 * m]
+    # 1. holes: a plane without tags, closest to the middle of the box (|2i - n|: twice the distance)
     best = None
-    for a in splittable.nonzero()[0]:
-        for i in (sigs[a] == 0).nonzero()[0]:
-            if m <= i <= size[a] - m:
-                score = abs(i - size[a] / 2)
-                if best is None or score < best[0]:
-                    best = (score, int(a), int(i))
+    for a in axes:
+        s, n = sigs[a], size[a]
+        if 0 in s:
+            for i, v in enumerate(s):
+                if not v and m <= i <= n - m and (best is None or abs(2 * i - n) < best[0]):
+                    best = (abs(2 * i - n), a, i)
     if best:
         return best[1], best[2]
     # 2. inflection: the largest jump of the second difference where it changes sign
-    best = None
-    for a in splittable.nonzero()[0]:
-        lap = np.zeros(size[a])
-        s = sigs[a].astype(float)
-        lap[1:-1] = s[2:] - 2 * s[1:-1] + s[:-2]
-        for i in range(max(m, 2), int(size[a]) - m + 1):
-            if i < size[a] and lap[i - 1] * lap[i] < 0:
-                jump = abs(lap[i] - lap[i - 1])
-                if best is None or jump > best[0]:
-                    best = (jump, int(a), i)
+    start = max(m, 2)
+    for a in axes:
+        s, n = sigs[a], size[a]
+        lap = [x - 2 * y + z for x, y, z in zip(s, s[1:], s[2:])]  # lap[i - 1]: at plane i
+        jumps = [abs(v - u) if u * v < 0 else 0  # at planes start, start + 1, ... (n - m and n - 2 at most)
+                 for u, v in zip(lap[start - 2:n - m - 1], lap[start - 1:n - m])]
+        jump = max(jumps, default=0)  # a change of sign jumps by more than 0
+        if jump and (best is None or jump > best[0]):
+            best = (jump, a, start + jumps.index(jump))
     if best:
         return best[1], best[2]
-    # 3. bisect the longest splittable side
-    a = int(splittable.nonzero()[0][np.argmax(size[splittable])])
-    return a, int(size[a]) // 2
+    # 3. bisect the longest side (at least 2 * min_box: the box was not accepted)
+    n = max(size)
+    return size.index(n), n // 2
 
 
 def mask(boxes: list[Box], shape: tuple[int, ...]) -> np.ndarray:
