@@ -81,8 +81,9 @@ class Walker:
         Is = [pool.index(b, U, ti.min(lo + L * k + l, hi - 1)) for l in ti.static(range(L))]
         idents = [pool.pid[Is[l]] for l in ti.static(range(L))]
         bits = [self.bits(e, idents[l][0], idents[l][1], step) for l in ti.static(range(L))]
-        moved = [self.step_with(pool.x[Is[l]], self.own(bits[l], idents[l][0]), 0) for l in ti.static(range(L))]
-        return [(Is[l], idents[l], pool.x[Is[l]], moved[l][0], moved[l][1], moved[l][2], lo + L * k + l < hi)
+        xs = [pool.x[Is[l]] for l in ti.static(range(L))]
+        moved = [self.step_with(xs[l], self.own(bits[l], idents[l][0]), 0) for l in ti.static(range(L))]
+        return [(Is[l], idents[l], xs[l], moved[l][0], moved[l][1], moved[l][2], lo + L * k + l < hi)
                 for l in ti.static(range(L))]
 
     @ti.func
