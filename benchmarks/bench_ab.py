@@ -43,7 +43,7 @@ def main():
     solvers = {}
     for k, m in mods.items():
         sc = m.load_scene(args.scene)
-        solvers[k] = importlib.import_module(k + ".sim").make_solver(sc, sc.initial_ppc)
+        solvers[k] = importlib.import_module(k + ".methods.registry").make_solver(sc, sc.initial_ppc)
     for n in range(3):  # compile
         for s in solvers.values():
             s.step(n)

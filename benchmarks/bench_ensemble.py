@@ -8,7 +8,8 @@ the workers included) for a small member (void1d, 100 cells) and a large one (el
 import time
 
 import ti_dk
-from ti_dk import ensemble, load_scene
+from ti_dk import load_scene
+from ti_dk.control import ensemble
 
 
 def rate(scene, executor, **kw):

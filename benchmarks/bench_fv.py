@@ -14,9 +14,9 @@ import numpy as np
 import taichi as ti
 
 import ti_dk
-from ti_dk import rng
-from ti_dk.fv import SPDESolver
-from ti_dk.grid import Grid
+from ti_dk.core import rng
+from ti_dk.methods.fv import SPDESolver
+from ti_dk.core.grid import Grid
 
 
 def timed(fn, reps):

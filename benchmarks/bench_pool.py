@@ -11,12 +11,12 @@ region, and leave the survivors ready for the next step.
 - sparse: ``pointer`` blocks of 8×8 cells, each with a ``dynamic`` list, double-buffered (a
   ``dynamic`` list cannot remove); a step appends each survivor to its destination block in the
   other buffer, then deactivates the old buffer. Memory follows the occupied blocks.
-- flat (ti_dk.pool.ParticlePool): one array per member, survivors marked in place and compacted
+- flat (ti_dk.pools.ParticlePool): one array per member, survivors marked in place and compacted
   by a blocked exclusive scan into the other buffer; capacity sized from the region.
 
 Prints particle steps per second for both.
 
-``--layouts``: the hybrid with ``pool_layout = flat`` and ``pointer`` (ti_dk.pool.BlockPool) on
+``--layouts``: the hybrid with ``pool_layout = flat`` and ``pointer`` (ti_dk.pools.BlockPool) on
 ellipse2d (100 steps), sphere3d (30 steps) and sphere3d on 160³ and 254³ cells (5 steps), each in a
 process of its own (compare = none): seconds per step after the first (which compiles), the
 process's peak RSS, the pool's own fields at their largest, and that the densities agree
@@ -31,9 +31,9 @@ import taichi as ti
 
 import ti_dk
 from ti_dk import load_scene
-from ti_dk.grid import Grid
-from ti_dk.particles import Walker
-from ti_dk.rng import seed_key
+from ti_dk.core.grid import Grid
+from ti_dk.methods.particles import Walker
+from ti_dk.core.rng import seed_key
 
 BLK = 8
 
@@ -99,7 +99,7 @@ def run_flat(cells, fraction, ppc, reps):
                        regrid_interval=0, threshold=1e-9, t_equil=None, histogram=None, ensemble=1)
     from bench_hybrid import centred_box
 
-    from ti_dk.sim import make_solver
+    from ti_dk.methods.registry import make_solver
 
     s = make_solver(scene, scene.initial_ppc)
     s.set_region(centred_box((cells, cells), fraction)[None], 0)
@@ -132,14 +132,14 @@ def one_layout(name: str, layout: str, side: int | None, threads: int) -> dict:
     import hashlib
     import resource
 
-    from ti_dk import pool
-    from ti_dk.sim import make_solver
+    from ti_dk.pools import slots
+    from ti_dk.methods.registry import make_solver
 
     ti_dk.init("cpu", threads=threads)
     scene_name, overrides, steps = LAYOUT_RUNS[name]
     scene = load_scene(scene_name, compare="none", pool_layout=layout, **overrides)
     if side:
-        pool.SIDE[scene.grid.dim] = side
+        slots.SIDE[scene.grid.dim] = side
     t0 = time.perf_counter()
     s = make_solver(scene, scene.initial_ppc)
     start = time.perf_counter() - t0

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 
 import ti_dk
-from ti_dk.render import FrameWriter, Panel, Renderer, colour_max
+from ti_dk.output.render import FrameWriter, Panel, Renderer, colour_max
 
 
 def density(n: int, dim: int, rng) -> tuple[np.ndarray, list]:

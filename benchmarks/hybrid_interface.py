@@ -4,7 +4,7 @@ Case V (the authors' 1D case): 100 periodic cells on [0, 1], ``ppc`` particles p
 41–60 (1-based) empty, the particle region fixed to the void plus one cell each side, C = 0.125,
 200 steps. Prints, per ghost profile, the z of the ensemble mean and variance (and skewness and
 kurtosis where the exact mean is 0.3–6) in every cell against
-:func:`ti_dk.theory.particle_counts_periodic`, the region total's variance, and the χ² of the
+:func:`ti_dk.core.theory.particle_counts_periodic`, the region total's variance, and the χ² of the
 seed-to-seed (block-to-block) scatter of the region cells' means.
 
     python benchmarks/hybrid_interface.py --members 100000 --profiles uniform linear mean
@@ -16,8 +16,9 @@ import time
 import numpy as np
 
 import ti_dk
-from ti_dk import load_scene, theory
-from ti_dk.sim import make_solver
+from ti_dk import load_scene
+from ti_dk.core import theory
+from ti_dk.methods.registry import make_solver
 
 
 def case_v(profile: str, members: int, substeps: int = 1, C: float = 0.125, seed: int = 11):

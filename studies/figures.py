@@ -17,7 +17,7 @@ import h5py
 import numpy as np
 
 import ti_dk
-from ti_dk import theory
+from ti_dk.core import theory
 
 from .runs import Run, Runs, parse_sets
 

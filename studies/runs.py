@@ -13,13 +13,14 @@ import h5py
 import numpy as np
 
 import ti_dk
-from ti_dk import config, io
-from ti_dk.runtime import Stats
+from ti_dk.output import files
+from ti_dk.scene import load
+from ti_dk.control.runtime import Stats
 
 
 @dataclass(frozen=True)
 class Run:
-    """One run as its HDF5 file records it (layout: :class:`ti_dk.io.RunFile`)."""
+    """One run as its HDF5 file records it (layout: :class:`ti_dk.output.files.RunFile`)."""
 
     scene: ti_dk.Scene
     path: Path
@@ -37,9 +38,9 @@ def read_run(path: Path, scene: ti_dk.Scene) -> Run:
     """The run of ``scene`` recorded in ``path``. A one-member file holds only the mean (that
     member's density); its other moments read as NaN."""
     with h5py.File(path, "r") as f:
-        st = io.read_group(f["stats"])
+        st = files.read_group(f["stats"])
         lo = f["stats/histogram"].attrs["lo"] if "histogram" in f["stats"] else None
-        diagnostics = io.read_group(f["diagnostics"])
+        diagnostics = files.read_group(f["diagnostics"])
         wall = float(f.attrs["wall_time"])
     nan = np.full_like(st["mean"], np.nan)
     stats = Stats(mean=st["mean"], variance=st.get("variance", nan), skewness=st.get("skewness", nan),
@@ -52,7 +53,7 @@ def recorded(path: Path, scene: ti_dk.Scene) -> bool:
     """Whether ``path`` is a complete run file written for exactly ``scene``."""
     try:
         with h5py.File(path, "r") as f:
-            return bool(f.attrs.get("complete", False)) and io.same_scene(f, scene)
+            return bool(f.attrs.get("complete", False)) and files.same_scene(f, scene)
     except (OSError, KeyError, json.JSONDecodeError):
         return False
 
@@ -77,7 +78,7 @@ class Runs:
     def get(self, tag: str, name: str, **keys) -> Run:
         scene = self.scene(name, **keys)
         out = self.root / tag
-        path = io.Outputs.of(out, scene).run_file
+        path = files.Outputs.of(out, scene).run_file
         if self.rerun or not recorded(path, scene):  # a stale or unwanted file is replaced
             ti_dk.run(scene, out=out, progress=self.progress, frames=False, snapshots=False, overwrite=True)
         return read_run(path, scene)
@@ -90,5 +91,5 @@ def parse_sets(items: list[str]) -> dict:
         key, sep, value = item.partition("=")
         if not sep or not key.strip():
             raise ti_dk.ConfigError(f"--set {item!r}: write KEY=VALUE, e.g. --set cells=[20]")
-        out[key.strip()] = config.parse_value(value.strip())
+        out[key.strip()] = load.parse_value(value.strip())
     return out

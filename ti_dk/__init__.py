@@ -1,11 +1,19 @@
-"""ti_dk: the Dean–Kawasaki SPDE and Brownian particles in Taichi (Kim, Bell, Garcia et al. hybrid).
+"""ti_dk: the Dean–Kawasaki SPDE and Brownian particles in Taichi with the AMAR particle hybrid of
+Djurdjevac, Almgren and Bell.
 
 Importing ti_dk never starts Taichi; :func:`run` does (CPU unless told), or call :func:`init`.
 """
-from .config import ConfigError, Scene, available_scenes, load_scene
-from .io import package_version
-from .runtime import Result, SimulationError, init
-from .sim import run
+import os
+
+# Taichi prints a "[Taichi] version ..." banner when imported unless this is false; this runs before
+# any ti_dk module imports taichi, so the banner is off for every entry point.
+os.environ.setdefault("ENABLE_TAICHI_HEADER_PRINT", "False")
+
+from .scene.load import available_scenes, load_scene  # noqa: E402
+from .scene.schema import ConfigError, Scene  # noqa: E402
+from .output.files import package_version  # noqa: E402
+from .control.runtime import Result, SimulationError, init  # noqa: E402
+from .control.controller import run  # noqa: E402
 
 __version__ = package_version()  # from pyproject.toml, through the installed metadata
 

@@ -1,0 +1,127 @@
+"""The exact answers themselves, checked by independent routes."""
+import math
+
+import numpy as np
+
+from ti_dk.core import theory
+
+
+def test_poisson_binomial_cumulants_match_pmf():
+    p = np.array([0.05, 0.3, 0.5, 0.9])
+    reps = np.array([3, 2, 1, 4])
+    pmf = theory.poisson_binomial_pmf(p, reps)
+    k = np.arange(len(pmf))
+    mean = (k * pmf).sum()
+    c = k - mean
+    var = (c**2 * pmf).sum()
+    m = theory.poisson_binomial_moments(np.repeat(p, reps))
+    assert np.isclose(pmf.sum(), 1) and np.isclose(m["mean"], mean) and np.isclose(m["variance"], var)
+    assert np.isclose(m["skewness"], (c**3 * pmf).sum() / var**1.5)
+    assert np.isclose(m["kurtosis"], (c**4 * pmf).sum() / var**2)
+
+
+def test_binomial_moments():
+    b = theory.binomial_moments(100, 0.01)
+    assert np.isclose(b["variance"], 0.99) and np.isclose(b["skewness"], 0.98 / math.sqrt(0.99))
+
+
+def _phi(z):
+    return math.exp(-0.5 * z * z) / math.sqrt(2 * math.pi)
+
+
+def _Q(z):
+    return 0.5 * math.erfc(z / math.sqrt(2))
+
+
+def test_cell_transition_is_stochastic_and_diffusive():
+    dt, n = 0.001 / 40, 40
+    P = theory.cell_transition(50, 1.0, dt, n, clamp=False)
+    assert np.allclose(P.sum(axis=1), 1.0) and np.allclose(P, P.T)
+    x = (np.arange(50) - 25) * 0.02
+    # spread of the end cell: start uniform in the cell (h²/12) plus diffusion t, plus the
+    # end-cell discretisation h²/12
+    assert np.isclose((P[25] * x**2).sum(), 0.001 + 2 * 0.02**2 / 12, rtol=1e-3)
+    # and the closed form of the Gaussian: (G(d+h) − 2G(d) + G(d−h))/h, G(x) = x Φ(x/s) + s φ(x/s)
+    s, h = math.sqrt(dt * n), 0.02
+
+    def G(x):
+        return x * (1 - _Q(x / s)) + s * _phi(x / s)
+
+    for d in range(4):
+        exact = (G((d + 1) * h) - 2 * G(d * h) + G((d - 1) * h)) / h
+        assert abs(P[25, 25 + d] - exact) < 1e-12
+
+
+def test_clamped_step_is_the_truncated_normal_with_atoms():
+    dt, h = 0.125 * 0.01**2, 0.01
+    s, a = math.sqrt(dt), 0.01 / math.sqrt(dt)
+    # variance of clamp(√Δt Z, −Δx, Δx): Δt (1 − 2aφ(a) − 2Q(a)) + 2Δx² Q(a)  (0.9914 Δt at C = 1/8)
+    var = dt * (1 - 2 * a * _phi(a) - 2 * _Q(a)) + 2 * h * h * _Q(a)
+    k = 1e-3 / h  # 2(1 − φ(k))/k² = Var − k² E[D⁴]/12 + …
+    assert math.isclose(2 * (1 - theory.clamped_step_cf(np.array([k]), dt, h)[0]) / k**2, var, rel_tol=1e-6)
+    assert 0.99 < var / dt < 0.992
+    # one step from uniform in a cell: P(cross a face) = E[max(D, 0)] / Δx
+    P1 = theory.cell_transition(100, 1.0, dt, 1)
+    cross = (s / math.sqrt(2 * math.pi) * (1 - math.exp(-0.5 * a * a)) + h * _Q(a)) / h
+    assert abs(P1[10, 11] - cross) < 1e-5 and abs(P1[10, 9] - cross) < 1e-5
+    # two steps: direct convolution of the binned step density on a fine grid
+    K = 400
+    u = np.linspace(-h, h, 2 * K + 1)
+    cdf = np.array([1 - _Q(v / s) for v in u])
+    step = np.diff(cdf)  # fine cells of width h/K between −h and h
+    step = np.concatenate([[_Q(a)], np.zeros(0), step, [_Q(a)]])  # atoms at ±h (ends of the grid)
+    start = np.full(K, 1.0 / K)
+    two = np.convolve(np.convolve(start, step), step)  # fine positions from −2h − … on
+    offset = -2 * K - 1  # fine index of the first entry relative to the cell's lower face
+    cells = (np.arange(two.size) + offset) // K
+    P2 = theory.cell_transition(100, 1.0, dt, 2)[10]
+    for c in (-2, -1, 0, 1, 2):
+        assert abs(two[cells == c].sum() - P2[(10 + c) % 100]) < 2e-3 / K * 10, c
+
+
+def test_counts_in_2d_are_the_sum_over_particles():
+    # brute force over every (source cell, particle) of a small periodic box
+    ppc0 = np.array([[0.0, 2.5, 1.0], [3.0, 0.0, 0.5], [1.0, 1.0, 0.0], [0.0, 4.0, 2.0]])
+    dt, steps = 0.1 * 0.25**2, 7
+    Px = theory.cell_transition(4, 1.0, dt, steps)
+    Py = theory.cell_transition(3, 0.75, dt, steps)
+    got = theory.particle_counts_periodic(ppc0, (1.0, 0.75), dt, steps)
+    for i in np.ndindex(ppc0.shape):
+        p, reps = [], []
+        for j in np.ndindex(ppc0.shape):
+            pj = Px[j[0], i[0]] * Py[j[1], i[1]]
+            ell = int(ppc0[j])
+            p += [pj, (ppc0[j] - ell) * pj]
+            reps += [ell, 1]
+        m = theory.poisson_binomial_moments(np.repeat(p, reps))
+        for k in m:
+            assert np.isclose(got[k][i], m[k], rtol=1e-10), (k, i)
+
+
+def test_linear_scheme_variance_limits():
+    # C → 0 gives the binomial variance λ(1 − 1/M); many steps reach the stationary value
+    assert np.isclose(theory.linear_scheme_variance((100,), (1e-9,), 5.0), 5.0 * 0.99)
+    assert np.isclose(theory.linear_scheme_variance((10,), (0.1,), 5.0, steps=100000),
+                      theory.linear_scheme_variance((10,), (0.1,), 5.0))
+    assert theory.linear_scheme_variance((10,), (0.1,), 5.0, steps=0) == 0.0
+
+
+def test_hybrid_mean_reduces_to_its_two_methods_and_conserves_mass():
+    M, C, steps = 40, 0.125, 60
+    dt = C / M**2
+    ppc0 = np.full(M, 12.5)
+    ppc0[15:25] = 0.0
+    exact = theory.particle_counts_periodic(ppc0, 1.0, dt, steps)["mean"]
+    all_particles = theory.hybrid_mean_1d(ppc0, np.ones(M, bool), dt, steps)
+    assert np.abs(all_particles - exact).max() < 2e-4  # sub-bin spread only
+    q = ppc0.copy()
+    for _ in range(steps):
+        q = q + 0.5 * C * (np.roll(q, 1) - 2 * q + np.roll(q, -1))
+    assert np.allclose(theory.hybrid_mean_1d(ppc0, np.zeros(M, bool), dt, steps), q, rtol=0, atol=1e-12)
+    region = np.zeros(M, bool)
+    region[14:26] = True
+    for profile in ("mean", "uniform"):
+        h = theory.hybrid_mean_1d(ppc0, region, dt, steps, ghost_profile=profile)
+        assert abs(h.sum() - ppc0.sum()) < 1e-9
+    # uniform ghosts overfill the first covered cells and drain the ring (benchmarks/RESULTS.md)
+    assert h[14] - exact[14] > 0.05 and h[13] - exact[13] < -0.05

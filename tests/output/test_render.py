@@ -1,0 +1,188 @@
+"""Frames read back pixel by pixel: density colours, negative cells inside their own cell, axes and
+ticks, region outlines on the darkest and brightest colours, one colour bar, the 3D volume panel,
+and the MP4 a run writes beside its file."""
+import subprocess
+import sys
+
+import imageio.v3 as iio
+import matplotlib
+import numpy as np
+import pytest
+
+from ti_dk.output.render import Panel, Renderer, colour_max, outline, time_label
+
+VIRIDIS = matplotlib.colormaps["viridis"]
+
+
+def _rgb(c):
+    return np.round(np.asarray(c[:3]) * 255).astype(int)
+
+
+def _lum(px):
+    return np.asarray(px, dtype=float) @ [0.299, 0.587, 0.114]
+
+
+def _cell(r, img, i, j, n, k=0, row=0):
+    """Pixels of cell (i, j) (j counts upwards) of panel k of method ``row`` (two pixels inside its
+    edges where cells are 8 pixels or more)."""
+    x0, y0, w, h = r.pixels[row][k]
+    a, b = x0 + i * w / n, y0 + (n - 1 - j) * h / n
+    m = 2 if w / n >= 8 else 0
+    return img[round(b) + m:round(b + h / n) - m, round(a) + m:round(a + w / n) - m]
+
+
+@pytest.mark.parametrize("n", [32, 256])
+def test_2d_colours_and_negative_cells_inside_their_own_cell(n):
+    vmax = 40.0
+    r = Renderer((n, n), (1.0, 1.0), 1, vmax, "test")
+    ppc = np.tile(np.linspace(0, vmax, n), (n, 1))  # ppc[i, j] grows with j (upwards)
+    negative = [(2, 3), (n // 2, n - 3), (n - 2, 1), (n - 3, 1)]  # off the border: the frame covers its pixels
+    for ij in negative:
+        ppc[ij] = -1.0
+    img = r.frame(0.5, [Panel("fv", ppc)]).astype(int)
+    for i, j in negative:
+        assert np.all(_cell(r, img, i, j, n) == 255), (i, j)
+        for di, dj in ((1, 0), (-1, 0), (0, 1), (0, -1)):  # the neighbours keep their colour
+            a, b = i + di, j + dj
+            if 0 < a < n - 1 and 0 < b < n - 1 and (a, b) not in negative:
+                px = _cell(r, img, a, b, n)
+                assert np.abs(px - _rgb(VIRIDIS(ppc[a, b] / vmax))).max() <= 2, (a, b)
+    for i, j in ((5, 7), (n - 3, n // 3), (n // 2, n // 2)):
+        assert np.abs(_cell(r, img, i, j, n) - _rgb(VIRIDIS(ppc[i, j] / vmax))).max() <= 2
+    assert img.shape[0] % 2 == 0 and img.shape[1] % 2 == 0  # movie-safe size
+
+
+def test_2d_axes_have_ticks_and_labels_in_domain_units():
+    n = 64
+    r = Renderer((n, n), (2.0, 1.0), 1, 10.0, "test")  # a 2 x 1 domain: panel twice as wide as high
+    img = r.frame(0.0, [Panel("fv", np.full((n, n), 5.0))]).astype(int)
+    x0, y0, w, h = r.pixels[0][0]
+    assert abs(w - 2 * h) <= 1
+    dark = _lum(img) < 100
+    below = dark[y0 + h + 1:y0 + h + 4]  # tick marks just under the lower axis line
+    ticks = r.axes[0][0].get_xticks()
+    assert ticks[0] == 0.0 and ticks[-1] == 2.0 and len(ticks) >= 3  # domain units: 0 to 2
+    for x in ticks:
+        assert below[:, round(x0 + w * x / 2.0) - 1:round(x0 + w * x / 2.0) + 2].any(), x
+    between = round(x0 + w * (ticks[0] + ticks[1]) / 4.0)
+    assert not below[:, between - 1:between + 2].any()  # marks, not a line
+    assert dark[y0 + h + 6:y0 + h + 20, x0 - 5:x0 + w + 5].sum() > 50  # tick labels
+    left = dark[:, x0 - 4:x0 - 1]  # tick marks left of the panel
+    yticks = r.axes[0][0].get_yticks()
+    assert yticks[0] == 0.0 and yticks[-1] == 1.0
+    for y in yticks:
+        row = round(y0 + h - h * y)
+        assert left[row - 2:row + 2].any(), y
+    assert dark[y0:y0 + h, x0 - 40:x0 - 6].sum() > 30  # y tick labels and label
+
+
+def test_region_outline_shows_on_the_darkest_and_brightest_colours():
+    n, vmax = 32, 40.0
+    r = Renderer((n, n), (1.0, 1.0), 1, vmax, "test")
+    ppc = np.zeros((n, n))
+    ppc[n // 2:] = 2 * vmax  # left half darkest (0), right half brightest (above the range)
+    box = ((8, 8), (24, 24))  # straddles both halves
+    img = r.frame(0.0, [Panel("hybrid", ppc, [box])]).astype(int)
+    x0, y0, w, h = r.pixels[0][0]
+    s = w / n
+    top = round(y0 + (n - 24) * s)  # the box's upper edge, in image rows
+    band = lambda x: _lum(img[top - 4:top + 5, round(x)])  # noqa: E731  a column across that edge
+    dark_bg, bright_bg = _lum(_rgb(VIRIDIS(0.0))), _lum(_rgb(VIRIDIS(1.0)))
+    for x in (x0 + 10.5 * s, x0 + 14.5 * s):  # on the darkest colour: a light line
+        assert band(x).max() > dark_bg + 150
+    for x in (x0 + 18.5 * s, x0 + 22.5 * s):  # on the brightest colour: a dark line
+        assert band(x).min() < bright_bg - 150
+    inside = _cell(r, img, 12, 16, n)
+    assert np.abs(inside - _rgb(VIRIDIS(0.0))).max() <= 2  # the box is outlined, not filled
+
+
+def test_outline_follows_the_mask_and_merges_edges():
+    m = np.zeros((6, 5), dtype=bool)
+    m[1:4, 1:3] = True  # a 3 x 2 block ...
+    m[1, 3] = True      # ... with one cell on top: an L-shape, perimeter 12 cell edges, 6 straight runs
+    segs = outline(m, (0.5, 1.0))
+    lengths = np.abs(segs[:, 1] - segs[:, 0]).sum(axis=1)
+    assert len(segs) == 6
+    assert np.isclose(lengths.sum(), 2 * 3 * 0.5 + 2 * 3 * 1.0)  # 6 edges of 0.5 along x, 6 of 1.0 along y
+    assert np.isclose(segs[..., 0].min(), 0.5) and np.isclose(segs[..., 0].max(), 2.0)
+    assert len(outline(np.zeros((4, 4), bool), (1.0, 1.0))) == 0
+
+
+def test_colour_range_and_time_label():
+    assert colour_max(np.array([0.0, 30.0])) == 50.0  # 30 + 3√30 = 46.4, up to a multiple of 5
+    assert colour_max(np.array([4.0])) == 10.0
+    assert colour_max(np.zeros(3)) == 1.0
+    assert time_label(0.00096035) == r"$t = 9.60\times10^{-4}\ L^2/2D$"
+    assert time_label(0.0) == r"$t = 0$" and time_label(2.5) == r"$t = 2.50\ L^2/2D$"
+
+
+def _spheres(n, inner):
+    x = (np.arange(n) + 0.5) / n - 0.5
+    X, Y, Z = np.meshgrid(x, x, x, indexing="ij")
+    void = X**2 + Y**2 + Z**2 < 0.35**2
+    ppc = np.where(void, 0.0, 30.0)
+    if inner:
+        ppc[(X - 0.1) ** 2 + (Y - 0.1) ** 2 + Z**2 < 0.12**2] = 15.0
+    return ppc, void
+
+
+def test_3d_volume_shows_the_density_through_the_region_and_one_colour_bar():
+    n = 24
+    r = Renderer((n, n, n), (1.0, 1.0, 1.0), 2, colour_max(np.array([30.0])), "test")
+    plain, void = _spheres(n, inner=False)
+    dense, _ = _spheres(n, inner=True)
+    boxes = [((3, 3, 3), (21, 21, 21))]  # the region covers the void
+    x, y, w, h = r.pixels[0][3]
+    vol = lambda img: img[y:y + h, x:x + w].astype(float)  # noqa: E731
+    a = vol(r.frame(0.0, [Panel("hybrid", plain, boxes), Panel("fv", plain)]))
+    b = vol(r.frame(0.0, [Panel("hybrid", dense, boxes), Panel("fv", dense)]))
+    c = vol(r.frame(0.0, [Panel("hybrid", plain), Panel("fv", plain)]))
+    background = a[2:10, 2:10].reshape(-1, 3)
+    changed = np.abs(b - a).max(axis=-1) > 20  # the denser sphere inside the void, seen through the region
+    assert changed.sum() > 0.005 * w * h
+    cy, cx = np.argwhere(changed).mean(axis=0)
+    assert abs(cx - w / 2) < 0.3 * w and abs(cy - h / 2) < 0.3 * h  # near the middle, where the void is
+    assert np.abs(a - c).max(axis=-1).sum() > 0  # the region's hull is drawn ...
+    assert (np.abs(a - c).max(axis=-1) > 30).sum() < 0.5 * (np.abs(a - background.mean(0)).max(-1) > 30).sum()
+    # ... and covers far less than the density shows
+    bx, by, bw, bh = r.bar_pixels  # one colour bar from the top of the first row to the bottom of the last
+    img = r.frame(0.0, [Panel("hybrid", plain, boxes), Panel("fv", plain)]).astype(int)
+    top, bottom = r.pixels[0][0][1], r.pixels[1][0][1] + r.pixels[1][0][3]
+    assert abs(by - top) <= 1 and abs(by + bh - bottom) <= 1
+    col = img[by:by + bh, bx + bw // 2]
+    assert col[round(0.15 * bh), 1] > 180 and _lum(col[round(0.85 * bh)]) < 80  # yellow above, purple below
+
+
+def test_3d_slices_mark_negative_cells_and_outline_the_region():
+    n = 16
+    r = Renderer((n, n, n), (1.0, 1.0, 1.0), 1, 50.0, "test")
+    ppc, _ = _spheres(n, inner=False)
+    ppc[8, 8, 8] = -2.0  # on all three mid-planes
+    img = r.frame(0.0, [Panel("hybrid", ppc, [((4, 4, 4), (12, 12, 12))])]).astype(int)
+    for k in range(3):
+        assert np.all(_cell(r, img, 8, 8, n, k) == 255), k
+    x0, y0, w, h = r.pixels[0][0]
+    edge = img[y0 + h // 4 - 4:y0 + h // 4 + 4, x0 + w // 2]  # the region's upper edge in the xy slice
+    assert _lum(edge).max() > 200 and _lum(edge).min() < 60  # light and dark lines together
+
+
+def test_movie_is_an_mp4_beside_the_run_file_and_printed(tmp_path):
+    r = subprocess.run([sys.executable, "-m", "ti_dk.scene", "ellipse2d", "--set", "cells=[16,16]", "--t-end", "0.002",
+                        "--set", "output_times=[0.002]", "--movie", "--set", "movie_frames=4", "--no-snapshots",
+                        "--no-progress", "--out", str(tmp_path)], capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr
+    mp4 = tmp_path / "ellipse2d_hybrid.mp4"
+    assert str(mp4) in r.stdout and str(tmp_path / "ellipse2d_hybrid_frames") in r.stdout
+    pngs = sorted((tmp_path / "ellipse2d_hybrid_frames").glob("frame_*.png"))
+    assert len(pngs) == 5  # 8 steps: steps 0, 2, 4, 6 and 8 (the output time)
+    frames = iio.imread(mp4, plugin="pyav") if _has("av") else iio.imread(mp4, index=None)
+    assert frames.shape[0] == 5 and frames.shape[1:] == iio.imread(pngs[0]).shape
+    assert not list((tmp_path / "ellipse2d_hybrid_frames").glob("*.gif"))
+
+
+def _has(module):
+    try:
+        __import__(module)
+    except ImportError:
+        return False
+    return True

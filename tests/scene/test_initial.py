@@ -1,0 +1,72 @@
+"""Initial conditions against exact totals and analytic areas and volumes."""
+import math
+
+import numpy as np
+import pytest
+
+from ti_dk import load_scene
+from ti_dk.scene import initial
+
+
+def test_uniform_holds_the_stated_number_everywhere():
+    q = initial.density_ppc("uniform", {"ppc": 5.0}, (7, 3), (1.0, 2.0))
+    assert q.shape == (7, 3) and np.all(q == 5.0) and q.sum() == 5.0 * 21
+
+
+def test_void_cells_are_empty_and_the_rest_hold_ppc():
+    q = load_scene("void1d").initial_ppc  # 100 cells, 20 per cell, void [0.25, 0.75]
+    x = (np.arange(100) + 0.5) / 100
+    inside = (x >= 0.25) & (x <= 0.75)
+    assert inside.sum() == 50 and np.all(q[inside] == 0) and np.all(q[~inside] == 20)
+    assert q.sum() == 1000  # the stated total: 20 particles in each of the 50 cells outside
+    # coordinates are measured from the lower corner in length units: on [0, 2] with 8 cells
+    # the centres 0.375 and 0.625 lie in the void
+    assert initial.density_ppc("void", {"ppc": 20.0, "void_lo": 0.25, "void_hi": 0.75}, (8,), (2.0,)).tolist() == \
+        [20, 0, 0, 20, 20, 20, 20, 20]
+    # in 2D the void is a slab across the second axis
+    q2 = initial.density_ppc("void", {"ppc": 3.0, "void_lo": 0.25, "void_hi": 0.75}, (8, 5), (1.0, 1.0))
+    assert np.all(q2 == q2[:, :1]) and q2[:, 0].tolist() == [3, 3, 0, 0, 0, 0, 3, 3]
+
+
+def _ellipse_perimeter(a, b):  # Ramanujan's approximation
+    return math.pi * (3 * (a + b) - math.sqrt((3 * a + b) * (a + 3 * b)))
+
+
+def test_ellipses_areas_orientation_and_total():
+    ro, ri, n = 0.4, 0.1, 256
+    q = initial.density_ppc("ellipses", {"ppc_outer": 30.0, "ppc_inner": 15.0, "outer_r": ro, "inner_r": ri},
+                            (n, n), (1.0, 1.0))
+    h = 1 / n
+    # 0.5(u−v)² + 2(u+v)² = a² + 4b² in the axes a = (u−v)/√2, b = (u+v)/√2: semi-axes r and r/2,
+    # area π r²/2; the inner one likewise with the axes swapped. Midpoint-rule error: at most the
+    # one layer of cells the boundary crosses, perimeter × h.
+    a_outer, a_inner = math.pi * ro**2 / 2, math.pi * ri**2 / 2
+    assert abs((q == 0).mean() - (a_outer - a_inner)) < _ellipse_perimeter(ro, ro / 2) * h
+    assert abs((q == 15).mean() - a_inner) < _ellipse_perimeter(ri, ri / 2) * h
+    assert abs(q.sum() * h * h - (30 * (1 - a_outer) + 15 * a_inner)) < 30 * _ellipse_perimeter(ro, ro / 2) * h
+    # the empty ellipse is long along the anti-diagonal, the inner one along the diagonal
+    d = 0.3 / math.sqrt(2)
+    at = lambda u, v: initial.ellipses((np.array([0.5 + u]), np.array([0.5 + v])))[0]  # noqa: E731
+    assert at(d, -d) == 0 and at(d, d) == 30
+    d = 0.08 / math.sqrt(2)
+    assert at(d, d) == 15 and at(d, -d) == 0
+
+
+def test_spheres_volumes_and_offset():
+    ro, ri, n = 0.4, 0.1, 64
+    q = initial.density_ppc("spheres", {"ppc_outer": 30.0, "ppc_inner": 15.0, "outer_r": ro, "inner_r": ri,
+                                        "inner_x": 0.1, "inner_y": 0.2, "inner_z": 0.0}, (n, n, n), (1.0, 1.0, 1.0))
+    h = 1 / n
+    v_outer, v_inner = 4 / 3 * math.pi * ro**3, 4 / 3 * math.pi * ri**3
+    assert abs((q == 0).mean() - (v_outer - v_inner)) < 4 * math.pi * (ro**2 + ri**2) * h
+    assert abs((q == 15).mean() - v_inner) < 4 * math.pi * ri**2 * h
+    # the inner sphere is centred at (0.6, 0.7, 0.5)
+    i = round(0.6 / h - 0.5), round(0.7 / h - 0.5), round(0.5 / h - 0.5)
+    assert q[i] == 15 and q[n - 1 - i[0], n - 1 - i[1], i[2]] == 0
+
+
+@pytest.mark.parametrize("name", list(initial.REGISTRY))
+def test_every_condition_is_a_nonnegative_float_array_of_the_grid(name):
+    cells = {"ellipses": (6, 5), "spheres": (4, 5, 6)}.get(name, (6, 5))
+    q = initial.density_ppc(name, {}, cells, (1.0,) * len(cells))
+    assert q.shape == cells and q.dtype == np.float64 and np.all(q >= 0)

@@ -1,0 +1,185 @@
+"""Scene loading, flat overrides and the one-line errors for bad input."""
+import dataclasses
+import warnings
+
+import pytest
+
+from ti_dk import ConfigError, available_scenes, load_scene
+from ti_dk.scene.schema import ClampWarning, HybridKeys
+from ti_dk.scene.load import parse_value
+
+from ..helpers import ROOT
+
+
+def test_scenes_load_and_override():
+    assert {"equilibrium1d", "void1d", "ellipse2d"} <= set(available_scenes())
+    s = load_scene("void1d", ppc=5, C=0.05, method="gaussian", ensemble=7, seed=3)
+    assert s.init.params["ppc"] == 5 and s.time.C == 0.05 and s.method.name == "gaussian" and s.method.ensemble == 7
+    assert s.grid.dim == 1 and s.grid.cells == (100,) and s.grid.boundary == (("periodic", "periodic"),)
+    assert s.dt == pytest.approx(0.05 * 1e-4)
+    assert s.n_steps == round(0.01 / s.dt)
+    assert s.output_steps[-1] == s.n_steps
+
+
+def test_output_times_past_t_end_are_dropped():
+    s = load_scene("void1d", t_end=0.0025)
+    assert s.stats.output_times == (0.001, 0.0025)
+
+
+def test_boundaries_per_axis_and_side():
+    s = load_scene("ellipse2d", boundary=[["dirichlet", "neumann"], "periodic"], reservoir_ppc=[[4.0, 0.0], 0.0])
+    assert s.grid.boundary == (("dirichlet", "neumann"), ("periodic", "periodic"))
+    assert s.grid.reservoir_ppc == ((4.0, 0.0), (0.0, 0.0))
+
+
+@pytest.mark.parametrize(
+    "name, overrides, message",
+    [
+        ("nope", {}, "unknown scene 'nope'"),
+        ("void1d", {"bogus": 1}, "unknown key 'bogus'"),
+        ("void1d", {"ensemble": "many"}, "ensemble = 'many': give a whole number"),
+        ("void1d", {"ensemble": 0}, "ensemble = 0: give a whole number in [1, 4294967296]"),
+        ("void1d", {"cells": [0]}, "give a whole number >= 1"),
+        ("void1d", {"cells": [1]}, "every axis needs at least 2 cells"),
+        ("void1d", {"cells": [4, 4, 4, 4]}, "give 1, 2 or 3 cell counts"),
+        ("void1d", {"lengths": [-1.0]}, "lengths = -1.0"),
+        ("void1d", {"C": 1.2}, "beyond the explicit stability limit C < 1"),
+        ("ellipse2d", {"C": 0.5}, "beyond the explicit stability limit C < 0.5"),
+        ("void1d", {"method": "magic"}, "method = 'magic': use one of fv, gaussian, particle"),
+        ("void1d", {"boundary": "sticky"}, "boundary 'sticky' on axis 0"),
+        ("void1d", {"boundary": [["periodic", "neumann"]]}, "periodic on one side only"),
+        ("void1d", {"t_end": -1.0}, "t_end = -1.0"),
+        ("void1d", {"precision": "f16"}, "precision = 'f16'"),
+        ("void1d", {"pool_layout": "sparse"}, "pool_layout = 'sparse': use one of flat, pointer"),
+    ],
+)
+def test_bad_input_says_what_to_change(name, overrides, message):
+    with pytest.raises(ConfigError) as err:
+        load_scene(name, **overrides)
+    assert message in str(err.value)
+    assert "\n" not in str(err.value)
+
+
+def test_unstable_override_and_clamp_warning():
+    assert load_scene("void1d", C=1.2, allow_unstable=True).time.C == 1.2
+    with pytest.warns(ClampWarning, match="clamped"):
+        load_scene("void1d", C=0.2, method="particle")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        load_scene("void1d", C=0.0625, method="particle")
+
+
+def test_anisotropic_stability_limit():
+    # dx = 1/16, dy = 1/32: dt = C/32², Σ dt/dx_a² = C (1/4 + 1) < 1 needs C < 0.8
+    load_scene("ellipse2d", cells=[16, 32], C=0.79)
+    with pytest.raises(ConfigError, match="C < 0.8"):
+        load_scene("ellipse2d", cells=[16, 32], C=0.81)
+
+
+def test_parse_value():
+    assert parse_value("[64, 64]") == [64, 64]
+    assert parse_value("0.5") == 0.5 and parse_value("true") is True and parse_value("fv") == "fv"
+
+
+def test_every_key_declared_once_with_doc_and_defaults_from_regrid():
+    from ti_dk.scene.schema import INIT_KEYS, KEYS, SECTIONS, Scene
+    from ti_dk.scene.load import keys_help
+    from ti_dk.hybrid.regrid import RegridParams
+
+    fields = [f.metadata.get("flat") or f.name for cls in (*SECTIONS.values(), Scene)
+              for f in dataclasses.fields(cls) if "key" in f.metadata]
+    assert len(fields) == len(set(fields)) and set(fields) | set(INIT_KEYS) == set(KEYS)
+    assert all(k.doc for k in KEYS.values())
+    help_text = keys_help()
+    assert all(f"  {name} " in help_text for name in KEYS)
+    assert help_text in (ROOT / "README.md").read_text()  # the README's key list
+    s, rg = load_scene("ellipse2d", threshold=RegridParams().threshold), RegridParams()
+    assert (s.hybrid.buffer, s.hybrid.grid_efficiency, s.hybrid.min_box, s.hybrid.max_box) == (rg.buffer, rg.efficiency, rg.min_box, rg.max_box)
+    assert HybridKeys().threshold == rg.threshold
+
+
+def test_set_values_take_the_keys_kind():
+    assert parse_value("2024", "name") == "2024" and parse_value("2024", "seed") == 2024
+    assert load_scene("void1d", name=parse_value("2024", "name")).name == "2024"
+    assert parse_value("fv", "method") == "fv" and parse_value("[1, 2]", "histogram") == [1, 2]
+
+
+@pytest.mark.parametrize("seed", [0, 2**31 - 1, 2**31, 2**32, 2**64 - 1])
+def test_every_unsigned_64_bit_seed_is_accepted(seed):
+    assert load_scene("void1d", seed=seed).method.seed == seed
+
+
+def test_memory_and_work_estimates():
+    from ti_dk.scene.estimates import machine_memory, memory_estimate, work_estimate
+
+    small = load_scene("void1d", ensemble=10)
+    est = memory_estimate(small)
+    # fv: q and one flux per cell (f64), three host copies: 10 members x 100 cells x (16 + 24) bytes
+    assert est["fields"] == 10 * 100 * 16 and est["host copies"] == 10 * 100 * 24
+    assert sum(est.values()) < machine_memory()
+    assert work_estimate(small)[0] == small.n_steps
+    # the hybrid's particles and regrids are part of its time: sphere3d ran 6.6 min (RESULTS.md)
+    fv, hy = (work_estimate(load_scene("sphere3d", method=m, compare="none"))[1] for m in ("fv", "hybrid"))
+    assert hy > 2 * fv and 200 < work_estimate(load_scene("sphere3d"))[1] < 800
+    big = dict(cells=[40000, 40000], method="fv")
+    with pytest.raises(ConfigError, match=r"needs about \d.* GiB .* but this machine has"):
+        load_scene("ellipse2d", **big)
+
+
+def test_options_are_checked_before_anything_starts(tmp_path):
+    from ti_dk.scene.load import check_options
+
+    s = load_scene("void1d", ensemble=2)
+    check_options(s, out=tmp_path / "new" / "dir", executor="dask", workers=2, chunk=1)
+    (tmp_path / "f").write_text("")
+    for kw, msg in [(dict(out=tmp_path / "f"), "is a file"), (dict(threads=0), "--threads = 0"),
+                    (dict(executor="dask", workers=0), "--workers = 0"), (dict(chunk=3), "--chunk is for"),
+                    (dict(restart=tmp_path / "none.h5"), "no such checkpoint")]:
+        with pytest.raises(ConfigError, match=msg):
+            check_options(s, **kw)
+
+
+def test_python_callers_may_pass_tuples_and_numpy_numbers():
+    import numpy as np
+
+    s = load_scene("ellipse2d", cells=(16, np.int64(16)), lengths=(1.0, 2.0), seed=np.uint64(2**64 - 1),
+                   boundary=(("neumann", "neumann"), "periodic"), C=np.float32(0.0625))
+    assert s.grid.cells == (16, 16) and s.method.seed == 2**64 - 1 and s.grid.boundary[0] == ("neumann", "neumann")
+
+
+@pytest.mark.parametrize("overrides, message", [  # load_scene's own hostile inputs (the CLI's are in test_scene)
+    ({"cells": [16.0, 16]}, "cells = 16.0: give a whole number"),
+    ({"ppc_outer": -1}, "ppc_outer = -1.0"),
+    ({"seed": 2**64}, "seed = 18446744073709551616"),
+    ({"seed": -1}, "seed = -1"),
+    ({"name": "a/b"}, "name = 'a/b'"),
+    ({"name": 7}, "name = 7"),
+    ({"init": "nothing"}, "unknown initial condition 'nothing'"),
+    ({"init": 3}, "unknown initial condition 3"),
+    ({"t_equil": 1.0}, "t_equil = 1.0"),
+    ({"output_times": [0.0, float("nan")]}, "output_times = nan"),
+    ({"reservoir_ppc": [[1.0, float("inf")], 0.0]}, "reservoir_ppc = inf"),
+    ({"description": 5}, "description = 5"),
+])
+def test_load_scene_refuses_with_one_line(overrides, message):
+    with pytest.raises(ConfigError) as err:
+        load_scene("ellipse2d", **overrides)
+    assert message in str(err.value) and "\n" not in str(err.value)
+
+
+def test_sections_mirror_the_tables_and_flat_keys_still_work(tmp_path):
+    nested = tmp_path / "nested.toml"
+    nested.write_text('[grid]\ncells = [20]\n[init]\nname = "uniform"\nppc = 3\n[time]\nC = 0.1\n'
+                      '[method]\nname = "hybrid"\nensemble = 4\n[hybrid]\nthreshold = 2.0\n[output]\nmovie_frames = 5\n')
+    s = load_scene(nested, seed=9)
+    assert (s.method.name, s.method.ensemble, s.method.seed, s.time.C) == ("hybrid", 4, 9, 0.1)
+    assert (s.hybrid.threshold, s.output.movie_frames, s.init.params["ppc"]) == (2.0, 5, 3.0)
+    flat = tmp_path / "flat.toml"
+    flat.write_text('method = "hybrid"\nensemble = 4\nC = 0.1\nthreshold = 2.0\nmovie_frames = 5\n'
+                    '[grid]\ncells = [20]\n[init]\nname = "uniform"\nppc = 3\n')
+    assert load_scene(flat, seed=9, name="nested") == s
+    assert load_scene(nested, **s.flat()) == s and s.replace(ensemble=2).method.ensemble == 2
+    assert s.replace(ppc=4.0, C=0.05) == load_scene(nested, seed=9, ppc=4.0, C=0.05)
+    (tmp_path / "wrong.toml").write_text('[grid]\ncells = [20]\nC = 0.1\n[init]\nname = "uniform"\n')
+    with pytest.raises(ConfigError, match=r"\[grid\] C: this key belongs in \[time\]"):
+        load_scene(tmp_path / "wrong.toml")

@@ -1,0 +1,98 @@
+"""The package as a whole (``ti_dk/__init__.py``): its rooms, their sizes, who imports whom, and the
+README's map of it."""
+import ast
+import re
+
+import ti_dk
+
+from .helpers import ROOT
+
+PACKAGE = ROOT / "ti_dk"
+MODULES = sorted(PACKAGE.rglob("*.py"))
+LIMITS = {"module": 500, "class": 250, "function": 60}  # lines, docstrings included
+
+
+def _name(path) -> str:
+    parts = path.relative_to(ROOT).with_suffix("").parts
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+def _imports(path) -> set[str]:
+    """The ti_dk modules ``path`` imports at module level or inside functions (resolved)."""
+    name, tree = _name(path), ast.parse(path.read_text())
+    pkg = name if path.name == "__init__.py" else name.rpartition(".")[0]
+    found = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.ImportFrom):
+            base = pkg.split(".")
+            if node.level:
+                base = base[:len(base) - node.level + 1]
+                mod = ".".join(base + ([node.module] if node.module else []))
+            else:
+                mod = node.module or ""
+            if not mod.startswith("ti_dk"):
+                continue
+            for a in node.names:
+                sub = f"{mod}.{a.name}"
+                found.add(sub if (ROOT / (sub.replace(".", "/") + ".py")).exists()
+                          or (ROOT / sub.replace(".", "/")).is_dir() else mod)
+        elif isinstance(node, ast.Import):
+            found.update(a.name for a in node.names if a.name.startswith("ti_dk"))
+    return found - {name}
+
+
+def test_no_room_too_big():
+    too_big = []
+    for path in MODULES:
+        src = path.read_text()
+        if len(src.splitlines()) > LIMITS["module"]:
+            too_big.append(f"{path.name}: {len(src.splitlines())} lines")
+        for node in ast.walk(ast.parse(src)):
+            if isinstance(node, (ast.ClassDef, ast.FunctionDef)):
+                kind = "class" if isinstance(node, ast.ClassDef) else "function"
+                n = node.end_lineno - node.lineno + 1
+                if n > LIMITS[kind]:
+                    too_big.append(f"{_name(path)}.{node.name}: {n} lines")
+    assert not too_big
+
+
+def test_subpackages_and_no_import_circles():
+    packages = sorted(p.name for p in PACKAGE.iterdir() if (p / "__init__.py").exists())
+    assert len(packages) >= 3, packages
+    graph = {_name(p): _imports(p) for p in MODULES}
+    graph = {k: {m for m in v if m in graph} for k, v in graph.items()}
+    graph.pop("ti_dk")  # the top re-exports the public API; no module inside imports it
+    done: set[str] = set()
+
+    def visit(m, stack):
+        for n in sorted(graph[m] - {"ti_dk"}):
+            assert n not in stack, " -> ".join(stack + [n])
+            if n not in done:
+                visit(n, stack + [n])
+        done.add(m)
+
+    for m in graph:
+        visit(m, [m])
+
+
+def test_no_module_reaches_into_another_modules_private_names():
+    reaches = []
+    for path in MODULES:
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.ImportFrom) and (node.level or (node.module or "").startswith("ti_dk")):
+                reaches += [f"{_name(path)}: {a.name}" for a in node.names if a.name.startswith("_")]
+    assert not reaches
+
+
+def test_readme_layout_names_every_module_once():
+    readme = (ROOT / "README.md").read_text()
+    layout = readme[readme.index("## Layout"):]
+    listed = [line.split()[0] for line in layout.splitlines() if re.match(r"(ti_dk|studies)/\S+\.py", line)]
+    tree = sorted(str(p.relative_to(ROOT)) for d in ("ti_dk", "studies") for p in (ROOT / d).rglob("*.py"))
+    assert sorted(listed) == tree
+
+
+def test_public_api_is_importable_from_the_top():
+    for name in ("load_scene", "run", "init", "Scene", "Result", "ConfigError", "SimulationError", "available_scenes"):
+        assert getattr(ti_dk, name) is not None
+    assert callable(ti_dk.run) and callable(ti_dk.load_scene)  # not shadowed by a subpackage of that name

@@ -1,0 +1,332 @@
+"""The run controller: a scene's solvers advanced step by step, each step followed by the output
+handlers that are due (:mod:`ti_dk.handlers`), and the end-of-run summary."""
+from __future__ import annotations
+
+import math
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from .checkpoint import Progress, read_checkpoint
+from ..scene.load import check_options
+from ..scene.schema import Scene
+from .handlers import Checkpoints, Clock, Diagnostics, Frames, Snapshots, Statistics
+from ..output.files import Outputs, RunFile, output_error
+from ..methods.registry import make_solver  # also where tests and benchmarks build a solver
+from .runtime import Result, SimulationError, check_stop, init, initialized, stats_of
+from ..methods.solver import Solver
+
+COMPARED = ("mass", "min_density", "negative_cells")  # diagnostics of the method run alongside, as compare_*
+
+
+@dataclass(frozen=True)
+class RunOptions:
+    """How :func:`run` runs a scene, beyond the scene and its output folder."""
+
+    progress: bool | None = None  # a progress bar on stderr (None: when stderr is a terminal)
+    arch: str = "cpu"  # the Taichi backend, if Taichi is not started yet
+    threads: int | None = None  # CPU threads, if Taichi is not started yet (None: all cores)
+    frames: bool | None = None  # PNG frames at the output times (with an output; None: yes)
+    movie: bool = False  # also scene.output.movie_frames evenly spaced frames and an MP4
+    snapshots: bool | None = None  # openPMD snapshots of member 0, 2D/3D (with an output; None: yes)
+    checkpoint_every: int = 0  # steps between checkpoints (0: none)
+    restart: Path | None = None  # the checkpoint to continue from
+    member0: int = 0  # the global index of the first member (a chunk of a larger ensemble)
+
+
+def run(scene: Scene, out: str | Path | None = None, progress: bool | None = None,
+        arch: str = "cpu", threads: int | None = None, *, frames: bool | None = None, movie: bool = False,
+        snapshots: bool | None = None, checkpoint_every: int = 0, restart: str | Path | None = None,
+        member0: int = 0, overwrite: bool = False) -> Result:
+    """Run a scene; return its statistics and, with ``out``, write its files there.
+
+    Rows are taken at ``scene.output_steps`` over the ensemble; a stationary scene (``t_equil``
+    set) pools every ``sample_every``-th step after ``t_equil`` into one row. With ``out``:
+    ``<scene>_<method>.h5`` (statistics, diagnostics), by default PNG frames at the output times
+    (``frames``: 2D/3D densities of member 0, 1D moment profiles; ``movie`` adds
+    ``scene.output.movie_frames`` evenly spaced frames and ``<scene>_<method>.mp4``) and, for 2D/3D
+    scenes, openPMD snapshots of member 0 (``snapshots``).
+    ``checkpoint_every`` K writes ``<scene>_<method>_checkpoint.h5`` every K steps (atomically);
+    ``restart`` continues from such a file, bit for bit as if never interrupted. ``member0``: the
+    global index of the first member (a chunk of a larger ensemble, see :mod:`ti_dk.ensemble`).
+
+    Every path lies inside ``out`` (:class:`ti_dk.io.Outputs`); the run holds an exclusive lock on
+    it, so a second run there is refused, and replaces a complete result only with ``overwrite``.
+    A signal seen by :func:`ti_dk.runtime.stop_on_signals` stops it between steps
+    (:class:`ti_dk.runtime.Stopped`); an I/O failure raises :class:`ti_dk.io.OutputError`; both
+    leave the file marked incomplete.
+    """
+    check_options(scene, out=out, threads=threads, checkpoint_every=checkpoint_every, restart=restart, movie=movie)
+    opts = RunOptions(progress, arch, threads, frames, movie, snapshots, checkpoint_every,
+                      Path(restart) if restart is not None else None, member0)
+    if out is None:
+        return _run(scene, None, opts)
+    outputs = Outputs.of(out, scene)
+    with outputs.claim(overwrite, fresh=restart is None):
+        try:
+            return _run(scene, outputs, opts)
+        except OSError as exc:  # disk full, quota, permission: the run file is already closed
+            raise output_error(outputs.out, exc) from None
+
+
+def _run(scene: Scene, outputs: Outputs | None, opts: RunOptions) -> Result:
+    """The time loop of :func:`run`, on checked options and a claimed output."""
+    if not initialized():
+        init(opts.arch, opts.threads)
+    check_stop()
+    wall0 = time.perf_counter()
+    solver, other = _solvers(scene, opts.member0)
+    prog = read_checkpoint(opts.restart, scene, solver, other) if opts.restart is not None else Progress()
+    ctl = Controller(scene, solver, other, outputs, prog, opts)
+    ctl.clock.add("setup", wall0)  # solvers built and initialised (their kernels compiled), checkpoint read
+    show = sys.stderr.isatty() if opts.progress is None else opts.progress
+    try:
+        if opts.restart is None:
+            ctl.record(0)
+        with StepBar(scene, prog.step, show, ctl.clock) as bar:
+            for n in range(prog.step, scene.n_steps):
+                check_stop(f" at step {n} of {scene.n_steps}", ctl.rf, ctl.checkpoints.latest)
+                bar.starting()
+                ctl.advance(n)
+                ctl.record(n + 1)
+                bar.stepped(n + 1)
+        if opts.movie:
+            ctl.make_movie()
+    except OverflowError as exc:
+        if ctl.rf:
+            ctl.rf.close(time.perf_counter() - wall0, error=str(exc))
+        raise SimulationError(str(exc)) from None
+    except BaseException as exc:
+        if ctl.rf:
+            _close_quietly(ctl.rf, time.perf_counter() - wall0, f"{type(exc).__name__}: {exc}")
+        raise
+    return ctl.finish(time.perf_counter() - wall0)
+
+
+def _solvers(scene: Scene, member0: int) -> tuple[Solver, Solver | None]:
+    """The scene's solver and that of the method run alongside (``scene.method.compare``), if any."""
+    ppc = scene.initial_ppc
+    try:
+        solver = make_solver(scene, ppc, member0)
+        other = make_solver(scene.replace(method=scene.method.compare), ppc, member0) if scene.method.compare else None
+    except OverflowError as exc:
+        raise SimulationError(str(exc)) from None
+    return solver, other
+
+
+class Controller:
+    """One run: its solvers (``other``: the method run alongside), the clock of its parts and its
+    output handlers, asked in order after every step whether they are due."""
+
+    def __init__(self, scene: Scene, solver: Solver, other: Solver | None, outputs: Outputs | None,
+                 prog: Progress, opts: RunOptions):
+        self.scene, self.solver, self.other = scene, solver, other
+        self.outputs = outputs  # every path the run writes, or None
+        self.clock = Clock(prog.timing, solver)  # seconds per part of the run
+        self.rf = RunFile.of(outputs, scene) if outputs else None  # statistics and diagnostics
+        frames = outputs is not None and (opts.frames is not False or opts.movie)
+        steps = _frame_steps(scene, frames, opts.movie)
+        self.statistics = Statistics(scene, solver, self.rf, prog, steps if frames and scene.grid.dim == 1 else ())
+        self.diagnostics = Diagnostics(self.rf, prog.diag, self.statistics)
+        writer = _frame_writer(outputs, scene, other) if frames else None
+        self.frames = Frames(scene, solver, other, writer, steps, prog.frames, self.statistics)
+        draw_snapshots = outputs is not None and scene.grid.dim >= 2 and opts.snapshots is not False
+        self.snapshots = Snapshots(scene, solver, outputs.snapshots if draw_snapshots else None)
+        every = opts.checkpoint_every
+        self.checkpoints = Checkpoints(scene, (solver, other), outputs.checkpoint if outputs and every else None,
+                                       every, self.progress, self.diagnostics, opts.restart)
+        self.handlers = (self.statistics, self.frames, self.snapshots, self.diagnostics, self.checkpoints)
+        self.written = self._written()  # every file or folder written, by what it holds
+
+    def _written(self) -> dict[str, Path]:
+        where = {"statistics and diagnostics": self.rf and self.rf.path,
+                 "frames": self.frames.writer and self.frames.writer.dir,
+                 "openPMD snapshots": self.snapshots.directory, "checkpoint": self.checkpoints.path}
+        return {what: path for what, path in where.items() if path}
+
+    def advance(self, n: int) -> None:
+        """Step ``n`` → ``n + 1`` of both solvers; their diagnostics kept; a NaN mass refused."""
+        t0 = time.perf_counter()
+        self.solver.step(n)
+        t0 = self.clock.add("solver", t0)
+        d = self.solver.diagnostics()
+        if self.other:
+            self.other.step(n)
+            self.clock.add("compare", t0)
+            d |= {f"compare_{k}": v for k, v in self.other.diagnostics().items() if k in COMPARED}
+        if not math.isfinite(d["mass"]):
+            raise SimulationError(
+                f"the density became NaN or infinite at step {n + 1} (t = {(n + 1) * self.scene.dt:.4g}): "
+                f"the scheme is unstable at C = {self.scene.time.C}; lower C")
+        self.diagnostics.append((n + 1) * self.scene.dt, d)
+
+    def record(self, n: int) -> None:
+        """After step ``n``: every handler that is due writes, its time counted to its part."""
+        for handler in self.handlers:
+            if handler.due(n):
+                t0 = time.perf_counter()
+                handler.write(n)
+                self.clock.add(handler.part, t0)
+
+    def progress(self, n: int) -> Progress:
+        """What the run has produced by step ``n`` (a checkpoint's content, with the solver states)."""
+        st = self.statistics
+        return Progress(step=n, rows=st.rows, times=st.times, diag=self.diagnostics.diag, frames=self.frames.log,
+                        pooled=st.pooled_state(), timing=self.clock.parts)
+
+    def make_movie(self) -> None:
+        """The MP4 of every frame."""
+        if self.frames.writer:
+            t0 = time.perf_counter()
+            self.written["movie"] = self.frames.writer.movie(self.outputs.movie)
+            self.clock.add("render", t0)
+
+    def finish(self, wall: float) -> Result:
+        """Close the run file (marked complete) and return the result."""
+        timing = self.clock.result(wall)
+        regrids = list(self.solver.regrids)
+        if self.rf:
+            self.rf.write_table("regrid", regrids)
+            if self.frames.writer:
+                self.rf.write_table("frames", self.frames.table())
+            self.rf.annotate("timing", timing)
+            self.rf.close(wall)
+        sc, st = self.scene, self.statistics
+        return Result(scene=sc, times=np.array(st.times), cell_volume=sc.grid.cell_volume,
+                      stats=stats_of(st.rows, sc.stats.histogram),
+                      diagnostics={k: np.asarray(v) for k, v in self.diagnostics.diag.items()},
+                      final_density=self.solver.density(), wall_time=wall, path=self.rf.path if self.rf else None,
+                      regrids=regrids, timing=timing, frames=self.frames.files(), rows=st.rows, written=self.written)
+
+
+class StepBar:
+    """The progress bar of the steps; the first step, which compiles the step kernels, is timed as
+    ``compile`` and left out of the rate and the ETA."""
+
+    def __init__(self, scene: Scene, start: int, show: bool, clock: Clock):
+        self.label = f"{scene.name}/{scene.method.name}"
+        self.bar = tqdm(total=scene.n_steps, initial=start, disable=not show, unit="step",
+                        desc=f"{self.label}: compiling", file=sys.stderr, mininterval=0.5)
+        self.clock = clock  # where the first step's time moves to "compile"
+        self.first = True  # no step done yet
+        self.before: dict[str, float] = {}  # the parts' seconds before the first step
+        self.t_first = 0.0  # when the first step began
+
+    def __enter__(self) -> "StepBar":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.bar.close()
+
+    def starting(self) -> None:
+        """A step begins."""
+        if self.first:
+            self.t_first = time.perf_counter()
+            self.before = self.clock.all()
+
+    def stepped(self, step: int) -> None:
+        """``step`` steps are done (the handlers included)."""
+        if not self.first:
+            self.bar.update()
+            return
+        self.first = False
+        self.clock.compiled(self.before, self.t_first)
+        self.bar.set_description(self.label, refresh=False)
+        self.bar.reset()  # restart the rate and ETA clock after compilation
+        self.bar.initial = self.bar.n = self.bar.last_print_n = step
+        self.bar.refresh()
+
+
+def _frame_steps(scene: Scene, frames: bool, movie: bool) -> set[int]:
+    """The steps that get a frame: the output steps (and step 0 in 2D/3D), plus evenly spaced ones
+    for a movie (not for a stationary scene)."""
+    steps = set(scene.output_steps) | ({0} if frames and scene.grid.dim > 1 else set())
+    if movie and scene.stats.t_equil is None:
+        steps |= {round(k * scene.n_steps / scene.output.movie_frames) for k in range(scene.output.movie_frames + 1)}
+    return steps
+
+
+def _frame_writer(outputs: Outputs, scene: Scene, other: Solver | None):
+    """The frame writer of this scene: moment profiles in 1D, density panels in 2D and 3D."""
+    from .render import FrameWriter
+
+    return FrameWriter(outputs.frames, _renderer(scene, scene.initial_ppc, other))
+
+
+def summary(result: Result) -> str:
+    """The end-of-run message: what ran, every method's negative cells, where the time went (in
+    step order, compilation apart) and every file written."""
+    sc, d, E = result.scene, result.diagnostics, result.scene.method.ensemble
+    members = f"{E:,} member{'s' * (E != 1)}"
+    every = " (all members)" if E > 1 else ""
+    t = result.times[-1] if len(result.times) else sc.n_steps * sc.dt
+    lines = [f"{sc.name}/{sc.method.name}: {sc.n_steps:,} steps of dt = {sc.dt:.4g} to t = {t:.4g}, {members}, "
+             f"{result.wall_time:.1f} s"]
+    mass = f"{d['mass'][-1] / E:,.6g} particles{' per member' * (E > 1)}" if "mass" in d else None
+
+    def negative(prefix: str) -> str:
+        neg = d.get(f"{prefix}negative_cells")
+        if neg is None or not len(neg):
+            return "negative cells not recorded"
+        return f"negative cells{every} {int(neg[-1]):,} at the end, at most {int(np.max(neg)):,} in a step"
+
+    main = [negative(""), *([mass] if mass else [])]
+    if "particles" in d:
+        n = d["particles"][-1] / E
+        where = f"{n:,.1f}" if E > 1 else f"{int(n):,}"
+        where += f" particles{' per member' * (E > 1)} in the particle region"
+        if sc.hybrid.regrid_interval == 0:
+            covered = f": {result.regrids[0]['covered_cells'] / E:,.0f} cells{' per member' * (E > 1)}" \
+                if result.regrids else ""
+            where += f" (fixed at the start{covered})"
+        else:
+            where += f" after {len(result.regrids):,} regrids"
+        main.append(where)
+    lines.append(f"  {sc.method.name}: " + "; ".join(main))
+    if sc.method.compare and "compare_negative_cells" in d:
+        lines.append(f"  {sc.method.compare} (run alongside): {negative('compare_')}")
+    names = {"compile": "compile (first step)", "solver": sc.method.name}
+    parts = [f"{names.get(k, k)} {v:.2f} s" for k, v in result.timing.items() if k != "total"]
+    if parts:
+        lines.append("time: " + ", ".join(parts) + f"; total {result.wall_time:.2f} s")
+    written = result.written or ({"statistics and diagnostics": result.path} if result.path else {})
+    if written:
+        lines.append("wrote:")
+    for what, path in written.items():
+        path = Path(path)
+        if what == "frames":
+            count = f"{len(result.frames)} PNG frame{'s' * (len(result.frames) != 1)}"
+            lines.append(f"  {path}/  ({count})")
+        elif path.is_dir():
+            lines.append(f"  {path}/  ({what}: {sum(1 for _ in path.iterdir())} files)")
+        else:
+            lines.append(f"  {path}  ({what})")
+    return "\n".join(lines)
+
+
+def _close_quietly(rf: RunFile, wall: float, error: str) -> None:
+    """Mark ``rf`` incomplete on the way out of a failed run; a second failure (the disk still full)
+    must not hide the first."""
+    try:
+        rf.close(wall, error=error)
+    except OSError:
+        pass
+
+
+def _renderer(scene: Scene, ppc: np.ndarray, other: Solver | None):
+    """What draws this scene's frames: moment profiles in 1D, density panels in 2D and 3D."""
+    if scene.grid.dim == 1:
+        from .profiles import ProfileRenderer
+
+        return ProfileRenderer(scene)
+    from .render import Renderer, colour_max
+
+    methods = scene.method.name + (f" (left) and {scene.method.compare} (right)" if other and scene.grid.dim == 2 else
+                              f" (top) and {scene.method.compare} (bottom)" if other else "")
+    return Renderer(scene.grid.cells, scene.grid.lengths, 1 + bool(other), colour_max(ppc),
+                    f"{scene.name}: {methods}, {'×'.join(map(str, scene.grid.cells))} cells, member 0")
+

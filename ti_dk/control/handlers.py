@@ -1,0 +1,242 @@
+"""A run's output handlers, each with its own schedule: ``due(step)`` says whether it writes after
+that step, ``write(step)`` writes, and ``part`` names the part of the run its time counts to.
+
+The run controller (:class:`ti_dk.sim.Controller`) asks them in order after every step:
+:class:`Statistics`, :class:`Frames`, :class:`Snapshots`, :class:`Diagnostics`, :class:`Checkpoints`.
+"""
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+from .checkpoint import Progress, write_checkpoint
+from ..scene.schema import Scene
+from ..output.files import RunFile, frame_file, pack_ids, write_openpmd
+from ..methods.solver import Solver
+from ..core.stats import CellStats
+
+FLUSH_SECONDS = 5.0  # per-step diagnostics reach the file at least this often (and at every checkpoint)
+TIMING_ORDER = ("setup", "compile", "regrid", "spde", "particles", "solver", "compare", "statistics", "render", "io")
+
+
+class Clock:
+    """Seconds per part of a run (:data:`TIMING_ORDER`); a solver that splits its step (the hybrid:
+    spde, particles, regrid) keeps its own parts in ``solver.timing``."""
+
+    def __init__(self, parts: dict[str, float], solver: Solver):
+        self.parts = parts  # seconds per part of the run, restored from a checkpoint or empty
+        self.solver = solver  # whose ``timing`` holds the parts of its step
+        for part in ("setup", "compile", "statistics", "render", "io"):
+            parts.setdefault(part, 0.0)
+
+    def add(self, part: str, t0: float) -> float:
+        """Count the time since ``t0`` to ``part``; return the time now."""
+        t1 = time.perf_counter()
+        self.parts[part] = self.parts.get(part, 0.0) + t1 - t0
+        return t1
+
+    def all(self) -> dict[str, float]:
+        """Seconds spent so far in each part of the run, the solver's own parts included."""
+        return {**self.parts, **self.solver.timing}
+
+    def compiled(self, before: dict[str, float], t0: float) -> None:
+        """Move what every part took since ``before`` (the first step, which compiles the step
+        kernels) into ``compile``."""
+        for k, v in self.all().items():
+            (self.solver.timing if k in self.solver.timing else self.parts)[k] -= v - before.get(k, 0.0)
+        self.add("compile", t0)
+
+    def result(self, wall: float) -> dict[str, float]:
+        """The parts in step order, ``other`` (progress bar, diagnostics, closing files) and ``total``."""
+        timing = self.all()
+        if self.solver.timing:  # its own parts replace "solver"
+            timing.pop("solver", None)
+        timing = {k: timing[k] for k in TIMING_ORDER if k in timing}
+        timing["other"] = wall - sum(timing.values())
+        timing["total"] = wall
+        return timing
+
+
+class Statistics:
+    """Statistics rows over the ensemble at ``scene.output_steps`` (and at ``extra_steps``, rows only
+    drawn by 1D frames); a stationary scene pools every ``sample_every``-th step after ``t_equil``
+    into one row at the end."""
+
+    part = "statistics"
+
+    def __init__(self, scene: Scene, solver: Solver, rf: RunFile | None, prog: Progress, extra_steps=()):
+        self.scene, self.solver, self.rf = scene, solver, rf
+        self.rows, self.times = prog.rows, prog.times  # the rows at output steps so far, and their times
+        self.outputs = set(scene.output_steps)  # steps whose row is kept and written
+        self.extra = set(extra_steps)  # steps whose row only draws a frame
+        self.stationary = scene.stats.t_equil is not None
+        self.n_equil = round(scene.stats.t_equil / scene.dt) if self.stationary else 0  # first pooled step
+        # stationary runs: the pooled samples
+        self.pooled = CellStats(scene.grid.cells, scene.grid.cell_volume, scene.stats.histogram)
+        if prog.pooled:
+            self.pooled.load_state(prog.pooled)
+        self.latest: tuple[int | None, dict | None] = (None, None)  # (step, row) of the last row taken
+        if rf:  # a restarted run writes what the checkpoint holds first: the file ends up the same
+            rf.write_rows(self.times, self.rows)
+
+    def due(self, n: int) -> bool:
+        if self.stationary:
+            return self._sampled(n) or n == self.scene.n_steps
+        return n in self.outputs or n in self.extra
+
+    def _sampled(self, n: int) -> bool:
+        return n >= self.n_equil and (n - self.n_equil) % self.scene.stats.sample_every == 0
+
+    def write(self, n: int) -> None:
+        sc = self.scene
+        if self.stationary:
+            if self._sampled(n):
+                self.pooled.add(self.solver.density())
+            row = self.pooled.row() if n == sc.n_steps else None
+        else:
+            cs = CellStats(sc.grid.cells, sc.grid.cell_volume, sc.stats.histogram)
+            cs.add(self.solver.density())
+            row = cs.row()
+        self.latest = (n, row)
+        if row is not None and n in self.outputs:
+            self.rows.append(row)
+            self.times.append(n * sc.dt)
+            if self.rf:
+                self.rf.write_row(n * sc.dt, row)
+
+    def row_at(self, n: int) -> dict | None:
+        """The row taken at step ``n``, if one was."""
+        step, row = self.latest
+        return row if step == n else None
+
+    def pooled_state(self) -> dict | None:
+        """What a checkpoint keeps of the pooled accumulator (stationary scenes)."""
+        return self.pooled.state() if self.stationary else None
+
+
+class Diagnostics:
+    """Per-step diagnostics on their way to the run file: written with every statistics row, at
+    every checkpoint and at least every ``FLUSH_SECONDS``, so a killed run keeps them up to then."""
+
+    part = "io"
+
+    def __init__(self, rf: RunFile | None, diag: dict, statistics: Statistics):
+        self.rf, self.diag = rf, diag  # diag: per step, every key the solvers report (restored or empty)
+        self.statistics = statistics  # whose rows force a flush
+        self.done, self.last = 0, time.monotonic()  # steps in the file; when they were written
+        self.flush(force=True)
+
+    def append(self, t: float, d: dict) -> None:
+        """The diagnostics of the step that ended at time ``t``."""
+        self.diag["time"].append(t)
+        for k, v in d.items():
+            self.diag.setdefault(k, []).append(v)
+
+    def due(self, n: int) -> bool:
+        return self.rf is not None
+
+    def write(self, n: int) -> None:
+        self.flush(force=self.statistics.row_at(n) is not None)
+
+    def flush(self, force: bool = False) -> None:
+        if self.rf is None or not (force or time.monotonic() - self.last > FLUSH_SECONDS):
+            return
+        n = len(self.diag["time"])
+        if n > self.done:
+            self.rf.write_diagnostics({k: v[self.done:] for k, v in self.diag.items()})
+        self.done, self.last = n, time.monotonic()
+
+
+class Frames:
+    """PNG frames at ``steps``: member 0's density of each method in 2D/3D, the ensemble's moment
+    profiles in 1D (from the :class:`Statistics` row of that step); ``writer`` None writes none."""
+
+    part = "render"
+
+    def __init__(self, scene: Scene, solver: Solver, other: Solver | None, writer, steps: set, log: dict,
+                 statistics: Statistics):
+        self.scene, self.solver, self.other = scene, solver, other
+        self.writer = writer  # ti_dk.render.FrameWriter, or None
+        self.steps = steps  # the steps that get a frame
+        self.log = log  # per frame: time and negative cells (restored from a checkpoint or empty)
+        self.statistics = statistics  # whose rows 1D frames draw
+        if writer is not None:
+            writer.files = [frame_file(writer.dir, k) for k in range(len(log["time"]))]
+
+    def due(self, n: int) -> bool:
+        return self.writer is not None and n in self.steps
+
+    def write(self, n: int) -> None:
+        t = n * self.scene.dt
+        self.log["time"].append(t)
+        if self.scene.grid.dim == 1:
+            region = self.solver.region()
+            self.writer.write(t, self.statistics.row_at(n), None if region is None else region.mean(axis=0))
+            self.log["negative_cells"].append(int((self.solver.density() < 0).sum()))  # all members
+            return
+        panels = self.panels()
+        self.writer.write(t, panels)
+        self.log["negative_cells"].append(int((panels[0].ppc < 0).sum()))
+        if self.other:
+            self.log.setdefault("compare_negative_cells", []).append(int((panels[1].ppc < 0).sum()))
+
+    def panels(self) -> list:
+        """Member 0 of each method as a frame panel, in particles per cell."""
+        from .render import Panel
+
+        sc, boxes = self.scene, self.solver.boxes
+        panels = [Panel(sc.method.name, self.solver.density()[0] * sc.grid.cell_volume, boxes[0] if boxes else None)]
+        if self.other:
+            panels.append(Panel(sc.method.compare, self.other.density()[0] * sc.grid.cell_volume))
+        return panels
+
+    def files(self) -> list[Path]:
+        return list(self.writer.files) if self.writer else []
+
+    def table(self) -> list[dict]:
+        """One record per frame (the run file's ``/frames``)."""
+        return [dict(zip(self.log, v)) for v in zip(*self.log.values())]
+
+
+class Snapshots:
+    """openPMD snapshots of member 0 at the output steps (:meth:`ti_dk.solver.Solver.snapshot`);
+    ``directory`` None writes none."""
+
+    part = "io"
+
+    def __init__(self, scene: Scene, solver: Solver, directory: Path | None):
+        self.scene, self.solver, self.directory = scene, solver, directory
+        self.steps = set(scene.output_steps)  # the steps that get a snapshot
+
+    def due(self, n: int) -> bool:
+        return self.directory is not None and n in self.steps
+
+    def write(self, n: int) -> None:
+        s, sc = self.solver.snapshot(0), self.scene
+        write_openpmd(self.directory, n, n * sc.dt, sc.dt, sc.grid, s.density, s.region, s.positions,
+                      None if s.pid is None else pack_ids(s.pid), s.boxes)
+
+
+class Checkpoints:
+    """A checkpoint every ``every`` steps (never after the last step), written atomically over the
+    previous one; ``path`` None writes none. ``latest``: the checkpoint a stopped run resumes from."""
+
+    part = "io"
+
+    def __init__(self, scene: Scene, solvers: tuple[Solver, Solver | None], path: Path | None, every: int,
+                 progress: Callable[[int], Progress], diagnostics: Diagnostics, latest: Path | None = None):
+        self.scene, self.solvers, self.path, self.every = scene, solvers, path, every
+        self.progress = progress  # what the run has produced by a step
+        self.diagnostics = diagnostics  # flushed with every checkpoint
+        self.latest = latest  # the newest checkpoint on disk (the one restarted from, at first)
+
+    def due(self, n: int) -> bool:
+        return self.path is not None and 0 < n < self.scene.n_steps and n % self.every == 0
+
+    def write(self, n: int) -> None:
+        # diagnostics first: a run killed right after the checkpoint lands must find them in the run
+        # file up to its step (test_a_killed_run_keeps_its_diagnostics_up_to_the_last_flush)
+        self.diagnostics.flush(force=True)
+        write_checkpoint(self.path, self.scene, *self.solvers, self.progress(n))
+        self.latest = self.path

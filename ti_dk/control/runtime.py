@@ -1,0 +1,184 @@
+"""What every run shares: Taichi's start-up, stopping on a signal, the errors and the result types."""
+from __future__ import annotations
+
+import contextlib
+import ctypes
+import io
+import os
+import signal
+import threading
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import taichi as ti
+
+from ..scene.schema import ConfigError, Scene
+
+ARCHS = {"cpu": ti.cpu, "cuda": ti.cuda}  # the backends a run may ask for, by their --arch name
+
+
+class SimulationError(RuntimeError):
+    """The run went wrong in a way the user can fix (unstable scheme, too many particles)."""
+
+
+class Stopped(SimulationError):
+    """SIGTERM or SIGINT arrived: the run stopped between two steps, its output closed and marked
+    incomplete. ``status``: the exit status a shell gives for that signal (143, 130)."""
+
+    def __init__(self, message: str, status: int):
+        super().__init__(message)
+        self.status = status  # 128 + the signal's number
+
+
+def init(arch: str = "cpu", threads: int | None = None) -> None:
+    """Start Taichi on ``arch`` ('cpu' or 'cuda'); refuse a backend that is absent or unsupported.
+
+    Literals in kernels are f64 (``default_fp``); solvers cast them to their own precision.
+    """
+    if arch not in ARCHS:
+        raise ConfigError(f"backend '{arch}' is not supported: use --arch cpu or --arch cuda")
+    if threads is not None and threads < 1:
+        raise ConfigError(f"threads = {threads}: give at least 1 CPU thread")
+    if arch == "cuda" and not cuda_driver_present():
+        raise ConfigError("the 'cuda' backend is not available on this machine (no CUDA driver): run with --arch cpu")
+    _keep_freed_memory()
+    _plain_source_positions()
+    kw = {"cpu_max_num_threads": threads} if threads else {}
+    with contextlib.redirect_stdout(io.StringIO()):  # ti.init prints "[Taichi] Starting on arch=..." unasked
+        ti.init(arch=ARCHS[arch], default_fp=ti.f64, offline_cache=True, log_level=ti.WARN, **kw)
+    if ti.lang.impl.current_cfg().arch != ARCHS[arch]:
+        raise ConfigError(f"the '{arch}' backend is not available on this machine: run with --arch cpu")
+
+
+def _keep_freed_memory() -> None:
+    """Let glibc's malloc keep the memory of freed large arrays for the next ones.
+
+    A regrid makes a dozen grid-sized host arrays (the density, tags, masks, the slot estimate:
+    2–16 MB each at 128³). By default glibc maps each afresh and unmaps it when freed, so every
+    one is paid again in page faults, and on this project's VMs those are slow and erratic: the
+    slot estimate of one sphere3d regrid took 7–95 ms, the same work each time (6–14 ms with
+    this setting, after the first). With no mmap below 1 GiB and no trimming, freed memory stays
+    in the process and is reused. sphere3d, steps 5–65, two pairs: an extension 93–95 → 65–76 ms,
+    a scheduled regrid 276–305 → 230–264 ms.
+    Only where the C library is glibc (``mallopt`` exists); elsewhere nothing changes."""
+    try:
+        libc = ctypes.CDLL("libc.so.6")
+        libc.mallopt(-3, 1 << 30)  # M_MMAP_THRESHOLD
+        libc.mallopt(-1, 2**31 - 1)  # M_TRIM_THRESHOLD (a C int)
+    except (OSError, AttributeError):
+        pass
+
+
+def _plain_source_positions() -> None:
+    """Make Taichi's compiler label each statement with its file and line only.
+
+    Taichi 1.7.4's AST transformer (``ASTTransformerContext.get_pos_info``) formats, for every
+    statement and expression of every kernel it builds, the source line with a caret line under
+    the node, both wrapped to 80 columns by ``textwrap``, even when nothing fails and the kernel
+    then comes from the offline cache (the frontend runs on every start). Symptom: ellipse2d's
+    solver took 3.0–3.5 s from ``make_solver`` to the end of its second step with a warm cache,
+    about 1 s of it in ``get_pos_info`` (``textwrap`` was the largest Python cost of the start-up);
+    1.9–2.5 s with this. A compilation error still names the file, line and kernel."""
+    from taichi.lang.ast import ast_transformer_utils as utils
+
+    def file_and_line(ctx, node) -> str:
+        return f'File "{ctx.file}", line {node.lineno + ctx.lineno_offset}, in {ctx.func.func.__name__}:\n'
+
+    utils.ASTTransformerContext.get_pos_info = file_and_line
+
+
+def cuda_driver_present() -> bool:
+    """Whether this machine has a CUDA driver (Taichi would otherwise fall back to the CPU silently)."""
+    try:
+        ctypes.CDLL("libcuda.so.1")
+    except OSError:
+        return False
+    return True
+
+
+def initialized() -> bool:
+    """Whether Taichi has been started in this process."""
+    return ti.lang.impl.get_runtime().prog is not None
+
+
+_STOP: dict = {"signal": None}  # set by the handlers of stop_on_signals(), read between steps
+
+
+@contextlib.contextmanager
+def stop_on_signals():
+    """SIGTERM and SIGINT set a flag that the run checks between steps (and after Taichi's start and
+    the kernels' compilation), instead of raising wherever Python happens to be; handlers restored after."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    def handler(signum, frame):
+        if _STOP["signal"] is not None:  # asked twice: stop at once, the default way
+            signal.signal(signum, signal.SIG_DFL)
+            os.kill(os.getpid(), signum)
+        _STOP["signal"] = signum
+
+    _STOP["signal"] = None
+    old = {s: signal.signal(s, handler) for s in (signal.SIGTERM, signal.SIGINT)}
+    try:
+        yield
+    finally:
+        for s, h in old.items():
+            signal.signal(s, h)
+        _STOP["signal"] = None
+
+
+def check_stop(where: str = " before the first step", rf=None, checkpoint: Path | None = None) -> None:
+    """Raise :class:`Stopped` if a signal arrived: ``rf`` closed and marked incomplete with the reason,
+    and the message names the latest checkpoint only if there is one."""
+    signum = _STOP["signal"]
+    if signum is None:
+        return
+    name = signal.Signals(signum).name
+    if rf is not None:
+        rf.close(error=f"stopped by {name}{where}")
+    msg = f"stopped by {name}{where}"
+    msg += f"; {rf.path} is marked incomplete" if rf is not None else ""
+    msg += f"; resume with --restart {checkpoint}" if checkpoint is not None else ""
+    raise Stopped(msg, 128 + signum)
+
+
+@dataclass(frozen=True)
+class Stats:
+    """Per-row, per-cell statistics; mean and variance in number density (particles per volume)."""
+
+    mean: np.ndarray  # (rows, *cells) [1/volume]
+    variance: np.ndarray  # (rows, *cells) [1/volume²]
+    skewness: np.ndarray  # (rows, *cells), dimensionless
+    kurtosis: np.ndarray  # (rows, *cells), excess, dimensionless
+    n_samples: np.ndarray  # (rows,) densities pooled into each row (members × time samples)
+    histogram: np.ndarray | None = None  # particles per cell, bins hist_lo … (one particle wide)
+    hist_lo: int | None = None  # the particle count of the first histogram bin
+
+
+def stats_of(rows: list[dict], hist: tuple[int, int] | None) -> Stats:
+    """The rows stacked along time."""
+    stack = {k: np.stack([r[k] for r in rows]) for k in rows[0] if not k.startswith("acc_")}
+    return Stats(mean=stack["mean"], variance=stack["variance"], skewness=stack["skewness"],
+                 kurtosis=stack["kurtosis"], n_samples=stack["n_samples"], histogram=stack.get("histogram"),
+                 hist_lo=hist[0] if hist else None)
+
+
+@dataclass(frozen=True)
+class Result:
+    """What a run returns: its statistics, per-step diagnostics, final densities and where its files are."""
+
+    scene: Scene  # the scene that ran
+    times: np.ndarray  # the time of each statistics row
+    cell_volume: float  # V_c, to turn number densities into particles per cell
+    stats: Stats  # the statistics rows
+    diagnostics: dict[str, np.ndarray] = field(repr=False)  # per step: mass, negative cells, … (all members)
+    final_density: np.ndarray = field(repr=False)  # every member at the end, (ensemble, *cells)
+    wall_time: float = 0.0  # seconds the run took
+    regrids: list[dict] = field(default_factory=list, repr=False)  # hybrid: one record per regrid
+    timing: dict[str, float] = field(default_factory=dict)  # seconds per part of the run
+    frames: list[Path] = field(default_factory=list)  # PNG frames written
+    written: dict[str, Path] = field(default_factory=dict)  # every file or folder written, by what it holds
+    rows: list[dict] = field(default_factory=list, repr=False)  # statistics rows with their accumulators
+    chunks: dict = field(default_factory=dict)  # distributed runs: chunk count and the retried chunks
+    path: Path | None = None  # the run file, if one was written

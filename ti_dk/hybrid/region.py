@@ -1,0 +1,210 @@
+"""The hybrid's particle region (paper §3.2): on the device the covered mask, the flat lists of
+ring and covered cells and the on-demand low mask; on the host a copy of the mask, the ghost ring
+(from which the lists are made) and each member's boxes.
+
+The boxes come from :mod:`regrid` (host NumPy); everything downstream reads the cell mask, so
+nothing depends on how the region was cut into boxes.
+"""
+
+import math
+
+import numpy as np
+import taichi as ti
+
+from . import regrid
+from ..core.grid import DIRICHLET, PERIODIC, Grid
+
+
+def _joined(first: np.ndarray, second: np.ndarray) -> np.ndarray:
+    """Two lists of flat indices end to end as one i32 kernel argument (never empty: Taichi takes no
+    array of size 0)."""
+    out = np.zeros(max(first.size + second.size, 1), dtype=np.int32)
+    out[:first.size], out[first.size:first.size + second.size] = first, second
+    return out
+
+
+@ti.data_oriented
+class Region:
+    """The particle region of every member: a cell mask, its ghost ring and their cell lists.
+
+    The ghost ring holds the cells outside the region within Chebyshev distance 1 of it (across
+    periodic sides) and the Dirichlet reservoir cells beyond covered boundary cells; it lives on
+    the padded grid (one ghost layer per side, padded index = cell index + 1). The lists hold
+    flat (C-order) indices, ascending, so a loop over them visits cells in a fixed order.
+    """
+
+    def __init__(self, grid: Grid, ensemble: int, params: regrid.RegridParams):
+        self.grid, self.ensemble, self.params = grid, ensemble, params
+        self.dim, self.n = grid.dim, grid.cells
+        self.padded = tuple(m + 2 for m in self.n)  # the grid plus one layer of ghost cells per side
+        self.periodic = tuple(lo == PERIODIC for lo, _ in grid.boundary)
+        E, n = ensemble, self.n
+        self.covered = ti.field(ti.u8, shape=(E, *n))  # 1 where the cell is in the particle region
+        self.low = ti.field(ti.u8, shape=(E, *n))  # 1: uncovered, and too low to stay so (mark_low)
+        self.ring_list = ti.field(ti.i32, shape=E * math.prod(self.padded))  # flat indices of ghost cells
+        self.cover_list = ti.field(ti.i32, shape=E * math.prod(n))  # flat indices of covered cells
+        self.n_ring, self.n_cover = 0, 0  # lengths of the two lists
+        self.boxes: list[list[regrid.Box]] = [[] for _ in range(E)]  # each member's region
+        self._mask = np.zeros((E, *n), dtype=bool)  # the host's copy of `covered` (read at every regrid)
+        self.ring_mask = np.zeros((E, *self.padded), dtype=bool)  # host: the ghost cells (padded index = cell + 1)
+
+    # -- host -----------------------------------------------------------------------------
+    def mask(self) -> np.ndarray:
+        """The region of every member, ``(ensemble, *cells)`` booleans (from the host's copy: no
+        device read, which cost an extension 0.5 ms of its 9 in ellipse2d)."""
+        return self._mask.copy()
+
+    def stage(self, masks: np.ndarray) -> tuple[np.ndarray, int, int]:
+        """Make ``masks`` the region :meth:`mask` answers from now on; return what the sampler's
+        ``cover`` changes ``covered`` by: the flat indices of the cells the region gains, then
+        of those it loses, and the two counts (lists, where a grid-sized field written with
+        ``from_numpy`` and read whole cost sphere3d's extensions about 10 ms each)."""
+        old, self._mask = self._mask, np.array(masks, dtype=bool, order="C")
+        new, gone = np.flatnonzero(self._mask & ~old), np.flatnonzero(old & ~self._mask)
+        return _joined(new, gone), new.size, gone.size
+
+    def plan(self, ppc: np.ndarray) -> tuple[np.ndarray, int]:
+        """A new region for every member from its SPDE content ``ppc`` (:func:`regrid.region`;
+        members with the same tags are clustered once): the masks, and how many cells were tagged.
+        The boxes are kept."""
+        masks = np.zeros(ppc.shape, dtype=bool)
+        cache: dict[bytes, list] = {}
+        tagged = 0
+        for e in range(self.ensemble):
+            self.boxes[e], masks[e], t = regrid.region(ppc[e], self.params, self.periodic, cache)
+            tagged += t
+        return masks, tagged
+
+    def plan_extension(self) -> tuple[np.ndarray, int]:
+        """The region plus the cells :meth:`mark_low` marked, grown by the buffer and clustered:
+        the masks, and how many members grew. The new boxes are added to the kept ones."""
+        masks = self.mask()
+        low = self.low.to_numpy().astype(bool)
+        add = regrid.grow(low, self.params.buffer, (None, *self.periodic))
+        members = np.flatnonzero(low.reshape(self.ensemble, -1).any(axis=1))
+        for e in members:
+            boxes = regrid.cluster(add[e], self.params)
+            self.boxes[e] = list(self.boxes[e]) + boxes
+            masks[e] |= regrid.mask(boxes, self.n)
+        return masks, len(members)
+
+    def grown(self, masks: np.ndarray) -> np.ndarray:
+        """The region ``masks`` and its ghost ring (the cells whose particles it keeps)."""
+        return regrid.grow(masks, 1, (None, *self.periodic))
+
+    def lists(self, grown: np.ndarray | None = None) -> None:
+        """Ghost ring and the flat lists of ring and covered cells, from ``covered`` (its host copy;
+        ``grown``: its :meth:`grown`, where the caller has made it already).
+
+        The lists are made on the host (``np.flatnonzero``: ascending flat indices) and copied in
+        by one kernel. They were made by a kernel (counts per row, a scan, a scatter) from a ring
+        field written with ``from_numpy``: sphere3d 13.9 ms a regrid, 10 of them the write."""
+        self.ring_mask = self._ring(self.grown(self._mask) if grown is None else grown)
+        ring, cover = np.flatnonzero(self.ring_mask), np.flatnonzero(self._mask)
+        self.n_ring, self.n_cover = ring.size, cover.size
+        self._load_lists(_joined(ring, cover), ring.size, cover.size)
+
+    def _ring(self, grown: np.ndarray) -> np.ndarray:
+        """The ghost cells of the region (from the host's copy of ``covered``) on the padded grid:
+        not covered, within Chebyshev distance 1 of a covered cell (across periodic sides); outside
+        the grid only beyond a Dirichlet side, and not beyond two sides at once.
+
+        Host NumPy: the region's dilation ``grown`` (:meth:`grown`) gives the cells inside the grid; a
+        reservoir layer beyond a Dirichlet side is the boundary layer of covered cells dilated
+        along the other axes. (It was a kernel over the padded grid that looked at each cell's
+        3^d neighbours: sphere3d's :meth:`lists` took 40 ms with it, 20 ms with this.)"""
+        m, d = self._mask, self.dim
+        out = np.zeros((self.ensemble, *self.padded), dtype=bool)
+        inner = (slice(None),) + (slice(1, -1),) * d
+        out[inner] = grown & ~m
+        for a in range(d):
+            for side, kind in enumerate(self.grid.boundary[a]):
+                if kind == DIRICHLET:
+                    layer = np.take(m, 0 if side == 0 else self.n[a] - 1, axis=a + 1)
+                    others = tuple(p for b, p in enumerate(self.periodic) if b != a)
+                    index = list(inner)
+                    index[a + 1] = 0 if side == 0 else -1
+                    out[tuple(index)] = regrid.grow(layer, 1, (None, *others))
+        return out
+
+    def state(self) -> dict[str, np.ndarray]:
+        boxes = [(e, *lo, *hi) for e, bs in enumerate(self.boxes) for lo, hi in bs]
+        return {"covered": self.covered.to_numpy(),
+                "boxes": np.array(boxes, dtype=np.int64).reshape(-1, 1 + 2 * self.dim)}
+
+    def load_state(self, st: dict[str, np.ndarray]) -> None:
+        self.covered.from_numpy(st["covered"])
+        self._mask = st["covered"].astype(bool)
+        self.lists()
+        self.boxes = [[] for _ in range(self.ensemble)]
+        d = self.dim
+        for row in st["boxes"]:
+            self.boxes[row[0]].append((tuple(int(v) for v in row[1:1 + d]), tuple(int(v) for v in row[1 + d:])))
+
+    # -- device ---------------------------------------------------------------------------
+    @ti.func
+    def member(self, e, C):
+        """The member-first index ``(e, *C)``."""
+        J = ti.Vector.zero(ti.i32, self.dim + 1)
+        J[0] = e
+        for a in ti.static(range(self.dim)):
+            J[a + 1] = C[a]
+        return J
+
+    @ti.func
+    def unflatten(self, i, shape: ti.template()):
+        """The index vector of flat (C-order) index ``i`` in an array of ``shape``."""
+        d = ti.static(len(shape))
+        J = ti.Vector.zero(ti.i32, d)
+        for b in ti.static(range(d)):
+            a = ti.static(d - 1 - b)
+            J[a] = i % shape[a]
+            i //= shape[a]
+        return J
+
+    @ti.func
+    def inside(self, C) -> bool:
+        """Whether cell ``C`` (no member index) is a grid cell."""
+        ok = True
+        for a in ti.static(range(self.dim)):
+            ok = ok and 0 <= C[a] < self.n[a]
+        return ok
+
+    @ti.func
+    def covered_cell(self, i):
+        """The member-first index of entry ``i`` of ``cover_list``."""
+        return self.unflatten(self.cover_list[i], ti.static(self.covered.shape))
+
+    @ti.func
+    def ring_cell(self, i):
+        """The member-first index of entry ``i`` of ``ring_list``, and whether it is a grid cell."""
+        P = self.unflatten(self.ring_list[i], ti.static(self.ring_mask.shape))
+        J = P - 1
+        J[0] = P[0]
+        return J, self.inside(ti.Vector([J[a + 1] for a in ti.static(range(self.dim))]))
+
+    @ti.kernel
+    def mark_low(self, q: ti.template(), trigger: ti.f64, threshold: ti.f64) -> ti.i32:
+        """Mark in ``low`` the uncovered cells whose density ``q`` holds fewer than ``threshold``
+        particles (or is negative), which the hybrid's ``extend`` covers; return how many uncovered
+        cells hold fewer than ``trigger`` (≤ ``threshold``): an extension is due when any does."""
+        vol = ti.static(self.grid.cell_volume)
+        due = 0
+        for J in ti.grouped(self.covered):
+            low = 0
+            content = ti.cast(q[J], ti.f64) * vol
+            if not self.covered[J] and content < threshold:
+                low = 1
+                if content < trigger:
+                    due += 1
+            self.low[J] = ti.u8(low)
+        return due
+
+    @ti.kernel
+    def _load_lists(self, flat: ti.types.ndarray(dtype=ti.i32, ndim=1), n_ring: ti.i32, n_cover: ti.i32):
+        """``ring_list`` and ``cover_list`` from ``flat``: the first ``n_ring`` entries, then ``n_cover``."""
+        for i in range(n_ring + n_cover):
+            if i < n_ring:
+                self.ring_list[i] = flat[i]
+            else:
+                self.cover_list[i - n_ring] = flat[i]

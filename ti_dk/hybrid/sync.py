@@ -1,0 +1,255 @@
+"""The particle step of the AMAR hybrid and its synchronisation with the SPDE (paper §3.2, eq. 12):
+the walk with crossing counts, the ghost-entry cap, the cell-order sort, S1/S2 refluxing."""
+
+import math
+import time
+
+import taichi as ti
+
+from ..core.grid import DIRICHLET, across, cell_of, exclusive_scan
+from ..methods.fv import SPDESolver
+from ..methods.particles import Walker
+from .ghosts import Sampler
+from .region import Region
+
+
+def _clock() -> float:
+    """Seconds, after the device has finished what was launched (kernels may run asynchronously)."""
+    ti.sync()
+    return time.perf_counter()
+
+
+@ti.data_oriented
+class Coupling:
+    r"""The particle step and the synchronisation of eq. (12): what the region and the SPDE
+    exchange in one step (steps 3 and 4 of :class:`HybridSolver`)."""
+
+    def __init__(self, spde: SPDESolver, region: Region, sampler: Sampler, walker: Walker):
+        self.spde, self.region, self.sampler, self.walker = spde, region, sampler, walker
+        self.grid, self.dim, self.n, self.real, self.dt = spde.grid, spde.dim, spde.n, spde.real, spde.dt
+        E, n = spde.ensemble, spde.n
+        self.count = ti.field(ti.i32, shape=(E, *n))  # particles ending the walk in each covered cell
+        self.dN = ti.field(ti.i32, shape=(E, *n))  # ΔN: net particles the region gave each uncovered cell
+        self.row = ti.field(ti.i32, shape=(E, math.prod(n[:-1])))  # first target slot of each member's rows of cells (sort)
+        self.entered = ti.field(ti.u64, shape=(E, *n))  # bit k: ghost k of this cell walked into the region
+        self.cap = ti.field(ti.i32, shape=(E, *n))  # most ghosts of this cell that may enter this sub-step
+        self.clamped = ti.field(ti.i64, shape=())  # axis steps clamped to ±Δx in the last walk
+        self.p_inflow = ti.field(ti.i64, shape=())  # particles injected minus absorbed at Dirichlet sides
+        self.wall_inflow = ti.field(ti.f64, shape=())  # SPDE boundary inflow of covered cells (cancelled)
+
+    @ti.func
+    def _face(self, J, a: ti.template(), side: ti.template()):
+        """Index in the SPDE's ``flux`` of face ``side`` (0: lower, 1: upper) of cell ``J`` along ``a``."""
+        F = J
+        if ti.static(side == 1):
+            F = self.spde.upper(J, a)
+        return F
+
+    @ti.func
+    def _cell(self, e, x):
+        """The member-first index of the cell holding position ``x`` of member ``e``."""
+        D = ti.Vector.zero(ti.i32, self.dim + 1)
+        D[0] = e
+        for a in ti.static(range(self.dim)):
+            D[a + 1] = cell_of(x[a], self.real(self.grid.dx[a]), self.n[a])
+        return D
+
+    @ti.kernel
+    def walk(self, pool: ti.template(), cur: ti.i32, step: ti.i32, last: ti.i32):
+        """Step 3 (one particle sub-step): walk, mark to keep what ends in the region, add to ΔN;
+        on the ``last`` sub-step count the particles per covered cell. The ghosts of this
+        sub-step were walked by the fill, which kept only those that entered the region
+        (:meth:`Sampler.sample`): here they are only accounted for."""
+        self.clamped[None] += self.sampler.clamped[None]  # the ghosts' clamped steps, all of them
+        for u in range(pool.units(cur)):
+            e, U, lo, hi = pool.unit(cur, u)
+            for k in range(self.walker.rounds(lo, hi)):
+                for I, ident, x, y, alive, clamped, own in ti.static(
+                        self.walker.lanes_at(pool, cur, U, e, lo, hi, k, ti.u32(step))):
+                    if own:  # a repeated last slot is accounted once
+                        self._account(pool, I, e, ident, x, y, alive, clamped, step, last)
+
+    @ti.func
+    def _account(self, pool: ti.template(), I, e, ident, x, y, alive, clamped, step, last):
+        """A walked slot of :meth:`walk`: store its step (a ghost of this sub-step was walked by the
+        fill: it keeps ``x``), mark it to keep if it ends in the region, and count the crossing."""
+        ghost = ident[1] == ti.u32(step + 1)
+        if ghost:
+            y, alive, clamped = x, True, 0
+        if clamped:  # rare (p ≈ erfc(Δx/√(2Δt)) per axis): no atomic on the shared counter otherwise
+            self.clamped[None] += clamped
+        D = self._cell(e, y)
+        keep = alive and self.region.covered[D] != 0
+        pool.x[I] = y
+        pool.mark(I, keep, D)
+        if keep:
+            counted = True
+            if ghost:
+                O = self.sampler.origin(ident[0])
+                if self.region.inside(O):
+                    k = self.sampler.index(ident[0])
+                    if k < 64:  # settled by cap_entries
+                        ti.atomic_or(self.entered[self.region.member(e, O)], ti.u64(1) << ti.cast(k, ti.u64))
+                        counted = False
+                    else:
+                        self.dN[self.region.member(e, O)] -= 1
+                else:
+                    self.p_inflow[None] += 1
+            if last and counted:
+                self.count[D] += 1
+        elif not ghost:
+            if alive:
+                self.dN[D] += 1
+            else:
+                self.p_inflow[None] -= 1
+
+    @ti.func
+    def _row(self, R):
+        """The index in :attr:`row` of row ``R`` (member, then the cell index without its last axis)."""
+        r = 0
+        for a in ti.static(range(1, self.dim)):
+            r = r * self.n[a - 1] + R[a]
+        return ti.Vector([R[0], r])
+
+    @ti.kernel
+    def sort(self, pool: ti.template(), b: ti.i32):
+        """Compact buffer ``b`` of a flat pool (:class:`pools.ParticlePool`) into the other like
+        its ``compact`` (the marked slots), but in cell order (a counting sort: counts per cell in ``count``, a
+        scan over rows of cells, a scatter). A particle's random numbers are keyed on its identity,
+        so the order changes no result; it keeps the walk's cell lookups and ``count`` updates
+        local, where the order left by many steps of compaction and appended ghosts scatters them
+        over the grid (measured in sphere3d at step 200: the walk 296–365 → 177–208 ms a step).
+        A pointer pool keeps its particles by block of cells and needs no sort."""
+        E, L, rows = ti.static(self.spde.ensemble, self.n[-1], math.prod(self.n[:-1]))
+        for u in range(pool.units(b)):
+            e, U, lo, hi = pool.unit(b, u)
+            for p in range(lo, hi):
+                I = pool.index(b, U, p)
+                if pool.marked(I):
+                    self.count[self._cell(e, pool.x[I])] += 1
+        # rows of cells along the last axis, member first. (Taichi 1.7.4: reaching a row's cells
+        # through Region.unflatten of a flat row index here failed to compile, "Assertion failure:
+        # load_src->is<MatrixPtrStmt>() ..." in store_to_load_forwarding; a grouped ndrange works.)
+        for R in ti.grouped(ti.ndrange(E, *self.n[:-1])):  # particles per row
+            c = 0
+            for j in range(L):
+                c += self.count[ti.Vector([R[a] for a in ti.static(range(self.dim))] + [j])]
+            self.row[self._row(R)] = c
+        ti.loop_config(serialize=True)  # the scan over each member's rows (grid.exclusive_scan: a serial task)
+        for e in range(E):
+            total = exclusive_scan(self.row, e, rows)
+            pool.n[1 - b, e] = total
+            pool.kept[e] = total
+        for R in ti.grouped(ti.ndrange(E, *self.n[:-1])):  # count becomes each cell's next target slot
+            total = self.row[self._row(R)]
+            for j in range(L):
+                J = ti.Vector([R[a] for a in ti.static(range(self.dim))] + [j])
+                c = self.count[J]
+                self.count[J] = total
+                total += c
+        for u in range(pool.units(b)):
+            e, U, lo, hi = pool.unit(b, u)
+            for p in range(lo, hi):
+                I = pool.index(b, U, p)
+                if pool.marked(I):
+                    K = pool.index(1 - b, U, ti.atomic_add(self.count[self._cell(e, pool.x[I])], 1))
+                    pool.x[K] = pool.x[I]
+                    pool.pid[K] = pool.pid[I]
+        for J in ti.grouped(self.count):
+            self.count[J] = 0
+
+    @ti.kernel
+    def cap_entries(self, pool: ti.template(), cur: ti.i32, step: ti.i32, last: ti.i32, n_ring: ti.i32):
+        """Let at most ``⌊q_I V_c + ΔN_I⌋`` of the ghosts of cell ``I`` enter the region in this
+        sub-step: the content the SPDE left in it (after S1) plus what the region gave it so far.
+        Without this cap a ghost cell holding ``ℓ + α`` particles, ``ℓ + 1`` ghosts of which all
+        walk in while its SPDE fluxes also carry content away, goes negative (measured: 6
+        cell-steps in the default ellipse2d run, in cells holding 5–8 particles). The ghosts
+        that enter are those of lowest index among the ones that walked in, so the result does
+        not depend on thread order; cells with more than 64 ghosts are not capped (64 ghosts all
+        walking in does not happen). Only the slots appended since the last compaction can hold
+        this sub-step's ghosts, so only those are read (ellipse2d: that loop 0.19 → 0.09 ms a step)."""
+        vol = ti.static(self.grid.cell_volume)
+        for i in range(n_ring):
+            J, inside = self.region.ring_cell(i)
+            if inside:
+                room = ti.floor(ti.cast(self.spde.q[J], ti.f64) * vol + ti.cast(self.dN[J], ti.f64))
+                cap = ti.cast(ti.max(room, 0.0), ti.i32)
+                self.cap[J] = cap
+                self.dN[J] -= ti.min(ti.cast(ti.math.popcnt(self.entered[J]), ti.i32), cap)
+        for u in range(pool.units(cur)):
+            e, U, lo, hi = pool.unit(cur, u)
+            for p in range(ti.max(lo, pool.first_new(U)), hi):
+                I = pool.index(cur, U, p)
+                ident = pool.pid[I]
+                if pool.marked(I) and ident[1] == ti.u32(step + 1):
+                    O = self.sampler.origin(ident[0])
+                    k = self.sampler.index(ident[0])
+                    if self.region.inside(O) and k < 64:
+                        J = self.region.member(e, O)
+                        below = self.entered[J] & ((ti.u64(1) << ti.cast(k, ti.u64)) - ti.u64(1))
+                        if ti.cast(ti.math.popcnt(below), ti.i32) < self.cap[J]:
+                            if last:
+                                self.count[self._cell(e, pool.x[I])] += 1
+                        else:
+                            pool.unmark(I)
+        for i in range(n_ring):
+            J, inside = self.region.ring_cell(i)
+            if inside:
+                self.entered[J] = ti.u64(0)
+
+    @ti.kernel
+    def s1(self, n_ring: ti.i32):
+        r"""S1 of eq. (12), before the walk: each ghost cell ``I`` drops the terms ∓ Δt F / Δx_a that
+        eq. (9) applied across its faces with covered cells, ``q_I ← q_I^{n+1,*} − Σ_{S1} F^{i→I}/V_c``,
+        so that ``q_I`` holds what the SPDE leaves in it; S2 (``ΔN_I / V_c``) is added by :meth:`sync`."""
+        for i in range(n_ring):
+            J, inside = self.region.ring_cell(i)
+            if inside:
+                corr = self.real(0.0)
+                for a in ti.static(range(self.dim)):
+                    k = self.real(self.dt / self.grid.dx[a])
+                    # F is positive down the axis: F = ½ Δq/Δx + noise
+                    for side in ti.static(range(2)):
+                        K, has = across(self.grid, J, a, side)
+                        if has and self.region.covered[K]:
+                            if ti.static(side == 0):
+                                corr += k * self.spde.flux[self._face(J, a, side)][a]
+                            else:
+                                corr -= k * self.spde.flux[self._face(J, a, side)][a]
+                self.spde.q[J] += corr
+
+    @ti.kernel
+    def sync(self, n_cover: ti.i32, n_ring: ti.i32):
+        """Step 4: covered cells take their counts; ring cells add S2, ΔN / V_c (eq. 12)."""
+        vol = ti.static(self.grid.cell_volume)
+        self.wall_inflow[None] = 0.0
+        for i in range(n_cover + n_ring):  # one parallel loop: covered cells, then ring cells
+            if i < n_cover:
+                self._take_count(self.region.covered_cell(i))
+            else:
+                J, inside = self.region.ring_cell(i - n_cover)
+                if inside:
+                    self.spde.q[J] += self.real(ti.cast(self.dN[J], ti.f64) / vol)
+                    self.dN[J] = 0
+
+    @ti.func
+    def _take_count(self, J):
+        """Synchronise covered cell ``J``: q = N / V_c; the SPDE's flux through a Dirichlet side of
+        it did not happen and is recorded in ``wall_inflow``."""
+        vol = ti.static(self.grid.cell_volume)
+        self.spde.q[J] = self.real(ti.cast(self.count[J], ti.f64) / vol)
+        self.count[J] = 0
+        for a in ti.static(range(self.dim)):
+            area = ti.static(self.grid.face_area[a] * self.dt)
+            for side in ti.static(range(2)):
+                if ti.static(self.grid.boundary[a][side] == DIRICHLET):
+                    _, inside = across(self.grid, J, a, side)
+                    if not inside:
+                        F = ti.cast(self.spde.flux[self._face(J, a, side)][a], ti.f64) * area
+                        if ti.static(side == 0):
+                            self.wall_inflow[None] += F
+                        else:
+                            self.wall_inflow[None] -= F
+
+

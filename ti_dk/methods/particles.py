@@ -1,0 +1,387 @@
+"""Independent Brownian particles: sampling from a density, the clamped walk, and binning."""
+import math
+
+import numpy as np
+import taichi as ti
+
+from .. import pools
+from ..core import rng
+from ..core.grid import DIRICHLET, NEUMANN, PERIODIC, Grid, cell_of
+from .solver import Solver
+
+
+@ti.data_oriented
+class Walker:
+    r"""The stateless particle numerics shared by the particle and hybrid solvers (ti.funcs only).
+
+    A step of particle ``(id0, birth)`` of member ``e`` at step ``n`` is
+
+    .. math:: x_a \leftarrow x_a + \operatorname{clamp}(\sqrt{Δt}\, Z_a, -Δx_a, Δx_a),
+
+    with ``Z`` keyed on (seed, member, step, id0, birth): the same whichever thread or slot holds it.
+    One Philox-4x32-10 counter serves the ``G = 4 // dim`` particles ``id0 = G·k … G·k + G − 1``
+    (4 in 1D, 2 in 2D, 1 in 3D): particle ``id0`` takes words ``(id0 mod G)·dim + a``, so a loop
+    that holds consecutive identities together (:meth:`ParticleSolver._walk`) makes one call
+    for ``G`` particles, and a particle walked alone (:meth:`move`) draws the same numbers.
+    (Issue 13: this replaced one counter per particle, changing the 1D and 2D walk streams.)
+    """
+
+    def __init__(self, grid: Grid, dt: float, real, key: tuple[int, int], member0: int = 0):
+        self.grid, self.dt, self.real = grid, dt, real
+        self.member0 = member0  # global index of member 0 (random numbers are keyed on the global index)
+        self.dim = grid.dim
+        self.group = max(1, 4 // self.dim)  # consecutive identities sharing one Philox counter
+        self.lanes = rng.lanes(self.dim)  # counter groups (or particles) a walk loop iteration moves
+        self.key = key  # the Philox key of the run (rng.seed_key of its seed)
+        rng.prepare()
+
+    @ti.func
+    def bits(self, e, id0, birth, step):
+        """The Philox words of the counter group holding particle ``(id0, birth)`` of member ``e``."""
+        return rng.philox4x32(ti.math.uvec4(id0 // ti.u32(self.group), step, self.member(e),
+                                            ti.u32(rng.WALK) | (birth << rng.PURPOSE_BITS)),
+                              ti.math.uvec2(self.key[0], self.key[1]))
+
+    @ti.func
+    def own(self, bits, id0):
+        """The Philox words of the group with particle ``id0``'s own ``dim`` words first."""
+        words = ti.math.uvec4(bits[0], bits[1], bits[2], bits[3])
+        if ti.static(self.group > 1):
+            g = ti.cast(id0 % ti.u32(self.group), ti.i32) * self.dim
+            for k in ti.static(range(1, self.group)):
+                if g == k * self.dim:
+                    for a in ti.static(range(self.dim)):
+                        words[a] = bits[k * self.dim + a]
+        return words
+
+    @ti.func
+    def move(self, x, e, id0, birth, step):
+        """One clamped Brownian step of the particle (id0, birth) of member ``e``; applies the walls.
+
+        Returns the new position, whether it is still in the domain, and the number of clamped axes.
+        """
+        return self.step_with(x, self.own(self.bits(e, id0, birth, step), id0), 0)
+
+    @ti.func
+    def rounds(self, lo, hi):
+        """Iterations of a walk over the slots ``[lo, hi)`` that moves :attr:`lanes` slots at a time
+        (:meth:`lanes_at`)."""
+        return (hi - lo + self.lanes - 1) // self.lanes
+
+    @ti.func
+    def lanes_at(self, pool: ti.template(), b, U, e, lo, hi, k, step):
+        """Iteration ``k`` of :meth:`rounds` over the slots ``[lo, hi)`` of unit ``U`` in buffer ``b`` of
+        ``pool`` (member ``e``): its :attr:`lanes` slots ``lo + L·k + l``, their Philox calls made
+        first (:func:`rng.lanes`), each moved by :meth:`move`. Past ``hi`` a lane repeats the last slot.
+
+        Returns a list with one tuple per lane, ``(I, ident, x, y, alive, clamped, own)``: the
+        slot's index in ``pool``, identity and position, :meth:`move`'s result, and whether the
+        lane is the slot's own (store and count only then; the repeats of the last slot are not).
+        """
+        L = ti.static(self.lanes)
+        Is = [pool.index(b, U, ti.min(lo + L * k + l, hi - 1)) for l in ti.static(range(L))]
+        idents = [pool.pid[Is[l]] for l in ti.static(range(L))]
+        bits = [self.bits(e, idents[l][0], idents[l][1], step) for l in ti.static(range(L))]
+        xs = [pool.x[Is[l]] for l in ti.static(range(L))]
+        moved = [self.step_with(xs[l], self.own(bits[l], idents[l][0]), 0) for l in ti.static(range(L))]
+        return [(Is[l], idents[l], xs[l], moved[l][0], moved[l][1], moved[l][2], lo + L * k + l < hi)
+                for l in ti.static(range(L))]
+
+    @ti.func
+    def step_with(self, x, bits, g: ti.template()):
+        """The step of :meth:`move` from the words ``bits[g·dim + a]`` (``g`` a compile-time slot)."""
+        y = x
+        alive = True
+        clamped = 0
+        for a in ti.static(range(self.dim)):
+            h = ti.static(self.grid.dx[a])
+            L = ti.static(self.grid.lengths[a])
+            lo, hi = ti.static(self.grid.boundary[a])
+            d = self.real(self.dt**0.5) * rng.normal(bits[g * self.dim + a], self.real)
+            if ti.abs(d) > h:
+                d = ti.math.clamp(d, -self.real(h), self.real(h))
+                clamped += 1
+            ya = y[a] + d
+            if ti.static(lo == PERIODIC):
+                if ya < 0:
+                    ya += self.real(L)
+                elif ya >= self.real(L):
+                    ya -= self.real(L)
+            else:
+                if ya < 0:
+                    if ti.static(lo == NEUMANN):
+                        ya = -ya
+                    else:
+                        alive = False
+                elif ya > self.real(L):
+                    if ti.static(hi == NEUMANN):
+                        ya = self.real(2 * L) - ya
+                    else:
+                        alive = False
+            y[a] = ya
+        return y, alive, clamped
+
+    @ti.func
+    def member(self, e):
+        """The counter word of local member ``e``: its global index."""
+        return ti.u32(e + self.member0)
+
+    @ti.func
+    def in_cell(self, C, bits, tilt):
+        r"""A position in cell ``C`` (integer vector, may lie in a ghost layer).
+
+        Along each axis the offset ``u ∈ (0, 1)`` has density ``1 + b (u − ½)`` with
+        ``b = tilt[a] ∈ [−2, 2]`` (0: uniform, as in paper §3), drawn by inverting its CDF
+        ``u + b (u² − u)/2 = r`` in the cancellation-free form ``u = 2r / (c + √(c² + 2br))``,
+        ``c = 1 − b/2``.
+        """
+        y = ti.Vector.zero(self.real, self.dim)
+        for a in ti.static(range(self.dim)):
+            r = rng.uniform(bits[a], self.real)
+            b = self.real(tilt[a])
+            c = self.real(1.0) - self.real(0.5) * b
+            u = self.real(2.0) * r / (c + ti.sqrt(ti.max(c * c + self.real(2.0) * b * r, self.real(0.0))))
+            u = ti.min(u, self.real(1.0 - 2.0**-24))  # stay inside the cell whatever the rounding
+            y[a] = (self.real(C[a]) + u) * self.real(self.grid.dx[a])
+        return y
+
+    @ti.func
+    def how_many(self, lam, bits_word):
+        """ℓ particles plus one more with probability α, for a mean of λ = ℓ + α (paper §3)."""
+        ell = ti.floor(lam)
+        extra = 0
+        if rng.uniform(bits_word, ti.f64) < lam - ell:
+            extra = 1
+        return ti.cast(ell, ti.i32) + extra
+
+
+@ti.data_oriented
+class ParticleSolver(Solver):
+    r"""Brownian walkers with D = ½ for every ensemble member (paper §3, the particle model).
+
+    One step moves each particle by the step of :meth:`Walker.move` (drawn there as ``bits``,
+    ``own``, ``step_with``, :func:`rng.lanes` counter groups per loop iteration), so a particle
+    crosses at most one cell per step and its path never depends on which thread moves it. Walls: periodic
+    sides wrap, Neumann sides reflect, Dirichlet sides absorb what leaves and inject what a
+    reservoir ghost layer at the reservoir density (sampled afresh each step) walks in.
+
+    Particles live in a :class:`pools.ParticlePool`, member ``e`` in slots ``[0, n[cur, e])``. With
+    Dirichlet sides a particle carries an id (slot at birth, birth step + 1), because absorption
+    compacts the slots (:meth:`pools.ParticlePool.compact`, into the pool's other buffer);
+    otherwise the slot is the id and one buffer suffices.
+    """
+
+    def __init__(self, grid: Grid, dt: float, ensemble: int, key: tuple[int, int], real, capacity: int,
+                 member0: int = 0):
+        self.grid, self.dt, self.ensemble, self.real, self.capacity = grid, dt, ensemble, real, capacity
+        self.dim = grid.dim
+        self.n = grid.cells
+        self.key = key  # the Philox key of the run (rng.seed_key of its seed)
+        self.walker = Walker(grid, dt, real, key, member0)
+        open_ = grid.has_dirichlet
+        self.pool = pools.ParticlePool(ensemble, capacity, self.dim, real, buffers=1 + open_, ids=open_)
+        self.cur = 0  # the pool buffer holding the particles
+        self.count = ti.field(ti.i32, shape=(ensemble, *self.n))  # particles per cell (after bin())
+        self.clamped = ti.field(ti.i64, shape=())  # axis steps clamped to ±Δx in the last step
+        self.inflow = ti.field(ti.i64, shape=())  # particles injected minus absorbed in the last step
+        self.overflow = ti.field(ti.i32, shape=())  # set when a member needed more than `capacity` slots
+        if open_:
+            # reservoir ghost layer beyond each side of axis a: one cell thick
+            self.layers = [tuple(1 if b == a else m for b, m in enumerate(self.n)) for a in range(self.dim)]
+            self.cross = max(math.prod(layer) for layer in self.layers)
+
+    @staticmethod
+    def capacity_for(grid: Grid, ppc: np.ndarray) -> int:
+        """Slots per member: the most particles sampling ``ppc`` can give; with reservoirs, room
+        (:func:`pools.capacity`) for that or a domain full at the reservoir density."""
+        cap = int(np.ceil(ppc).sum())
+        if grid.has_dirichlet:
+            cap = pools.capacity(max(cap, grid.reservoir_ppc_max * math.prod(grid.cells)))
+        return max(cap, 1)
+
+    # -- public -------------------------------------------------------------------------
+    def initialize(self, ppc: np.ndarray, exact_uniform: bool = False) -> None:
+        """Sample particles: ``ppc`` per cell as ℓ plus one with probability α (mean ℓ + α), uniform
+        in the cell; or, with ``exact_uniform``, N = Σ ppc particles uniform in the whole domain
+        (the exact equilibrium of a closed box)."""
+        self.cur = 0
+        if exact_uniform:
+            self._place_uniform(int(round(ppc.sum())))
+        else:
+            f = ti.field(ti.f64, shape=self.n)
+            f.from_numpy(np.ascontiguousarray(ppc, dtype=np.float64))
+            self._sample(f)
+        if self.grid.has_dirichlet:
+            self._init_ids()
+        self._check_overflow()
+
+    def step(self, n: int) -> None:
+        """Walk every particle from step ``n`` to ``n + 1``."""
+        self._walk(self.cur, n)
+        if self.grid.has_dirichlet:  # drop the absorbed (in order), then inject from the reservoirs
+            self.pool.compact(self.cur)
+            self.cur = 1 - self.cur
+            self._inject(self.cur, n)
+            self._check_overflow()
+
+    def state(self) -> dict[str, np.ndarray]:
+        """The particles a checkpoint needs to continue bit for bit."""
+        b = self.cur
+        st = {"x": self.pool.x.to_numpy()[b], "n_alive": self.pool.n.to_numpy()[b]}
+        return st | ({"pid": self.pool.pid.to_numpy()[b]} if self.grid.has_dirichlet else {})
+
+    def load_state(self, st: dict[str, np.ndarray]) -> None:
+        n = st["n_alive"][None]
+        if self.pool.buffers == 2:
+            n = np.concatenate([n, np.zeros_like(n)])
+        self.pool.load(st["x"][None], st["pid"][None] if self.grid.has_dirichlet else None, n)
+        self.cur = 0
+
+    def density(self) -> np.ndarray:
+        """Number density of every member, ``(ensemble, *cells)``: counts / V_c, float64."""
+        self._bin(self.cur)
+        return self.count.to_numpy().astype(np.float64) / self.grid.cell_volume
+
+    def diagnostics(self) -> dict[str, float]:
+        return {
+            "mass": float(pools.total(self.pool.n, (self.cur,))),
+            "min_density": math.nan,  # not binned every step; counts are never negative
+            "negative_cells": 0,
+            "boundary_inflow": float(self.inflow[None]),
+            "clamped_steps": int(self.clamped[None]),
+        }
+
+    def _check_overflow(self) -> None:
+        if self.overflow[None]:
+            raise OverflowError(
+                f"a member needed more than {self.capacity} particle slots: lower the densities or the reservoir_ppc"
+            )
+
+    # -- kernels ------------------------------------------------------------------------
+    @ti.kernel
+    def _sample(self, ppc: ti.template()):
+        key = ti.math.uvec2(self.key[0], self.key[1])
+        self.overflow[None] = 0
+        for e in range(self.ensemble):
+            k = 0
+            for C in ti.grouped(ti.ndrange(*self.n)):  # serial within a member: slots in cell order
+                lin = ti.u32(0)
+                for a in ti.static(range(self.dim)):
+                    lin = lin * ti.u32(self.n[a]) + ti.u32(C[a])
+                bits = rng.philox4x32(ti.math.uvec4(lin, 0, self.walker.member(e), ti.u32(rng.SAMPLE_COUNT)), key)
+                m = self.walker.how_many(ppc[C], bits[0])
+                for _ in range(m):
+                    if k < self.capacity:
+                        r = rng.philox4x32(ti.math.uvec4(ti.u32(k), 0, self.walker.member(e), ti.u32(rng.SAMPLE_POSITION)), key)
+                        self.pool.x[0, e, k] = self.walker.in_cell(C, r, ti.Vector.zero(self.real, self.dim))
+                    k += 1
+            if k > self.capacity:
+                self.overflow[None] = 1
+            self.pool.n[0, e] = ti.min(k, self.capacity)
+
+    @ti.kernel
+    def _place_uniform(self, total: ti.i32):
+        key = ti.math.uvec2(self.key[0], self.key[1])
+        self.overflow[None] = 0
+        if total > self.capacity:
+            self.overflow[None] = 1
+        for e, k in ti.ndrange(self.ensemble, self.capacity):
+            if k < total:
+                r = rng.philox4x32(ti.math.uvec4(ti.u32(k), 0, self.walker.member(e), ti.u32(rng.SAMPLE_POSITION)), key)
+                y = ti.Vector.zero(self.real, self.dim)
+                for a in ti.static(range(self.dim)):
+                    y[a] = rng.uniform(r[a], self.real) * self.real(self.grid.lengths[a])
+                self.pool.x[0, e, k] = y
+        for e in range(self.ensemble):
+            self.pool.n[0, e] = ti.min(total, self.capacity)
+
+    @ti.kernel
+    def _init_ids(self):
+        for e, k in ti.ndrange(self.ensemble, self.capacity):
+            self.pool.pid[0, e, k] = ti.math.uvec2(ti.u32(k), 0)
+
+    @ti.kernel
+    def _walk(self, b: ti.i32, step: ti.u32):
+        """Move the particles of buffer ``b``; with Dirichlet sides mark the absorbed as not kept."""
+        self.clamped[None] = 0
+        self.inflow[None] = 0
+        G = ti.static(self.walker.group)
+        x = ti.static(self.pool.x)
+        if ti.static(self.grid.has_dirichlet):  # identities are not slots: one counter per particle
+            for u in range(self.pool.units(b)):  # over the particles, not the capacity (pools.ParticlePool.units)
+                e, U, lo, hi = self.pool.unit(b, u)
+                for k in range(self.walker.rounds(lo, hi)):
+                    for I, _ident, _x, y, alive, clamped, own in ti.static(
+                            self.walker.lanes_at(self.pool, b, U, e, lo, hi, k, step)):
+                        if own:
+                            x[I] = y
+                            if clamped:  # rare: an atomic for every particle would cost more than the step
+                                self.clamped[None] += clamped
+                            self.pool.keep[e, I[2]] = ti.u8(alive)
+                            if not alive:
+                                self.inflow[None] -= 1
+        else:  # identity = slot: the G particles of a counter group walk together
+            L = ti.static(self.walker.lanes)
+            for e, k in ti.ndrange(self.ensemble, -(-self.capacity // (L * G))):
+                n = self.pool.n[b, e]
+                if L * G * k < n:  # L counter groups at once, their Philox calls first
+                    bits = [self.walker.bits(e, ti.u32(G * (L * k + l)), ti.u32(0), step) for l in ti.static(range(L))]
+                    for g in ti.static(range(G)):
+                        ps = [G * (L * k + l) + g for l in ti.static(range(L))]
+                        moved = [self.walker.step_with(x[b, e, ti.min(ps[l], self.capacity - 1)], bits[l], g)
+                                 for l in ti.static(range(L))]
+                        for l in ti.static(range(L)):
+                            if ps[l] < n:
+                                x[b, e, ps[l]] = moved[l][0]
+                                if moved[l][2]:
+                                    self.clamped[None] += moved[l][2]
+
+    @ti.kernel
+    def _inject(self, b: ti.i32, step: ti.u32):
+        """Dirichlet sides: append to buffer ``b`` the reservoir walkers of step ``step`` that walk in."""
+        key = ti.math.uvec2(self.key[0], self.key[1])
+        K = ti.static(int(self.grid.reservoir_ppc_max) + 1)  # most particles a reservoir cell can hold
+        for e in range(self.ensemble):
+            j = self.pool.n[b, e]
+            for a in ti.static(range(self.dim)):
+                for side in ti.static(range(2)):
+                    if ti.static(self.grid.boundary[a][side] == DIRICHLET):
+                        lam = ti.static(self.grid.reservoir[a][side] * self.grid.cell_volume)
+                        layer = ti.static(self.layers[a])
+                        tag = ti.static((2 * a + side) * self.cross)
+                        for G in ti.grouped(ti.ndrange(*layer)):
+                            C = G
+                            C[a] = -1 if side == 0 else self.n[a]
+                            lin = ti.u32(0)
+                            for c in ti.static(range(self.dim)):
+                                lin = lin * ti.u32(layer[c]) + ti.u32(G[c])
+                            lin += ti.u32(tag)
+                            bits = rng.philox4x32(ti.math.uvec4(lin, step, self.walker.member(e), ti.u32(rng.SAMPLE_COUNT)), key)
+                            m = self.walker.how_many(lam, bits[0])
+                            for k in range(m):
+                                id0 = lin * ti.u32(K) + ti.u32(k)
+                                r = rng.philox4x32(
+                                    ti.math.uvec4(id0, step, self.walker.member(e), ti.u32(rng.SAMPLE_POSITION)), key)
+                                y, alive, clamped = self.walker.move(self.walker.in_cell(C, r, ti.Vector.zero(self.real, self.dim)), e, id0, step + 1, step)
+                                self.clamped[None] += clamped
+                                if alive:
+                                    if j < self.capacity:
+                                        self.pool.x[b, e, j] = y
+                                        self.pool.pid[b, e, j] = ti.math.uvec2(id0, step + 1)
+                                        j += 1
+                                        self.inflow[None] += 1
+                                    else:
+                                        self.overflow[None] = 1
+            self.pool.n[b, e] = j
+
+    @ti.kernel
+    def _bin(self, b: ti.i32):
+        for J in ti.grouped(self.count):
+            self.count[J] = 0
+        for e, p in ti.ndrange(self.ensemble, self.capacity):
+            if p < self.pool.n[b, e]:
+                J = ti.Vector.zero(ti.i32, self.dim + 1)
+                J[0] = e
+                for a in ti.static(range(self.dim)):
+                    J[a + 1] = cell_of(self.pool.x[b, e, p][a], self.real(self.grid.dx[a]), self.n[a])
+                self.count[J] += 1

@@ -1,0 +1,56 @@
+"""The method registry: each scene ``method`` name and the builder of its solver."""
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+import taichi as ti
+
+from ..core import rng
+from ..scene.schema import Scene
+from .fv import SPDESolver
+from ..core.grid import Grid
+from ..hybrid.solver import HybridSolver
+from .particles import ParticleSolver
+from .solver import Solver
+
+Builder = Callable[[Scene, np.ndarray, dict], Solver]  # (scene, particles per cell, common arguments) → solver
+
+
+def make_solver(scene: Scene, ppc: np.ndarray, member0: int = 0) -> Solver:
+    """The solver object for ``scene.method.name``, initialised from ``ppc`` particles per cell; its
+    members are members ``member0 …`` of the whole ensemble (chunks of a distributed run)."""
+    grid = Grid.from_scene(scene)
+    real = ti.f32 if scene.method.precision == "f32" else ti.f64
+    key = rng.seed_key(scene.method.seed)  # the one Philox key every solver of the run draws with
+    common = dict(grid=grid, dt=scene.dt, ensemble=scene.method.ensemble, key=key, real=real, member0=member0)
+    return BUILDERS[scene.method.name](scene, ppc, common)
+
+
+def _spde(ppc: np.ndarray, common: dict, gaussian: bool, track_mean: bool = False) -> SPDESolver:
+    solver = SPDESolver(gaussian=gaussian, track_mean=track_mean, **common)
+    solver.initialize(ppc)
+    return solver
+
+
+def _particle(scene: Scene, ppc: np.ndarray, common: dict) -> ParticleSolver:
+    capacity = ParticleSolver.capacity_for(common["grid"], ppc)  # its memory was checked with the scene
+    solver = ParticleSolver(capacity=capacity, **common)
+    solver.initialize(ppc, exact_uniform=scene.method.particle_init == "exact_uniform")
+    return solver
+
+
+def _hybrid(scene: Scene, ppc: np.ndarray, common: dict) -> HybridSolver:
+    spde = _spde(ppc, common, gaussian=scene.hybrid.spde == "gaussian", track_mean=scene.hybrid.ghost_profile == "mean")
+    solver = HybridSolver(spde, scene.hybrid.regrid, scene.hybrid.regrid_interval, scene.hybrid.ghost_profile,
+                          scene.hybrid.particle_substeps, scene.hybrid.pool_layout)
+    solver.initialize()
+    return solver
+
+
+BUILDERS: dict[str, Builder] = {  # every name in config.METHODS
+    "fv": lambda scene, ppc, common: _spde(ppc, common, gaussian=False),
+    "gaussian": lambda scene, ppc, common: _spde(ppc, common, gaussian=True),
+    "particle": _particle,
+    "hybrid": _hybrid,
+}

@@ -1,0 +1,414 @@
+"""HDF5 record of a run: statistics rows, per-step diagnostics and provenance."""
+from __future__ import annotations
+
+import errno
+import fcntl
+import json
+import os
+import platform
+import re
+import time
+from contextlib import contextmanager
+from dataclasses import dataclass
+from importlib import metadata
+from pathlib import Path
+
+import h5py
+import numpy as np
+
+from ..scene.schema import ConfigError
+
+STAT_KEYS = ("mean", "variance", "skewness", "kurtosis")
+
+
+def package_version() -> str:
+    """ti_dk's version from its installed metadata (pyproject.toml), without importing the package root."""
+    try:
+        return metadata.version("ti_dk")
+    except metadata.PackageNotFoundError:  # a source tree that was never pip-installed
+        return "unknown"
+
+
+class OutputError(RuntimeError):
+    """Output could not be written (disk full, permission, quota): one line, exit status 1."""
+
+
+def output_error(path: Path, exc: OSError) -> OutputError:
+    """The one-line message for an I/O failure on ``path``, saying what to change."""
+    why = {errno.ENOSPC: "the disk is full", errno.EDQUOT: "the disk quota is exceeded",
+           errno.EACCES: "permission denied", errno.EROFS: "the file system is read-only"}
+    code = exc.errno
+    if code is None:  # HDF5 reports the system error inside its message: "... errno = 28, ..."
+        found = re.search(r"errno = (\d+)", str(exc))
+        code = int(found.group(1)) if found else None
+    reason = why.get(code) or exc.strerror or str(exc).splitlines()[0]
+    return OutputError(f"cannot write {path}: {reason}; free space or use another --out")
+
+
+SPACE_RESERVE = 1 << 20  # bytes kept free on the output's file system (HDF5 metadata, the closing flush)
+
+
+def require_space(path: Path, nbytes: float) -> None:
+    """Raise ENOSPC *before* writing ``nbytes`` near ``path`` would leave less than ``SPACE_RESERVE``.
+
+    HDF5 cannot recover from a write that fails for want of space: its metadata cache retries the
+    flush forever and the process can crash when the file is released. Refusing the write first
+    keeps every file closable (and marked incomplete).
+    """
+    folder = path if path.is_dir() else path.parent
+    st = os.statvfs(folder)
+    if st.f_bavail * st.f_frsize < nbytes + SPACE_RESERVE:
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(path))
+
+
+@dataclass(frozen=True)
+class Outputs:
+    """Every path a run writes, named once and all inside ``out``.
+
+    ``run_file`` ``<out>/<name>_<method>.h5``, ``frames`` ``…_frames/``, ``snapshots``
+    ``…_openpmd/``, ``checkpoint`` ``…_checkpoint.h5``, ``chunks`` ``…_chunks/`` (Dask) and
+    ``lock`` ``….lock``: the file a run holds an exclusive lock on while it writes any of them.
+    """
+
+    out: Path
+    stem: str
+
+    @classmethod
+    def of(cls, out: str | Path, scene) -> "Outputs":
+        o = cls(Path(out), f"{scene.name}_{scene.method.name}")
+        for p in (o.run_file, o.frames, o.snapshots, o.checkpoint, o.chunks, o.lock):
+            if p.resolve().parent != o.out.resolve():  # the scene name is checked; this is the guarantee
+                raise ValueError(f"{p} would lie outside --out {out}")
+        return o
+
+    run_file = property(lambda self: self.out / f"{self.stem}.h5")
+    frames = property(lambda self: self.out / f"{self.stem}_frames")
+    snapshots = property(lambda self: self.out / f"{self.stem}_openpmd")
+    checkpoint = property(lambda self: self.out / f"{self.stem}_checkpoint.h5")
+    chunks = property(lambda self: self.out / f"{self.stem}_chunks")
+    lock = property(lambda self: self.out / f"{self.stem}.lock")
+    movie = property(lambda self: self.out / f"{self.stem}.mp4")
+
+    @contextmanager
+    def claim(self, overwrite: bool = False, fresh: bool = True):
+        """Hold the exclusive lock for the whole run; refuse a busy output or a complete result.
+
+        A second run on the same output is refused (:class:`ConfigError`), never allowed to touch
+        the first one's files; an existing complete result is replaced only with ``overwrite``. A
+        ``fresh`` run (not a restart) removes the frames and snapshots an earlier run left, so a
+        series never mixes two runs. The lock file stays (removing it could let two runs lock two
+        different files).
+        """
+        try:
+            self.out.mkdir(parents=True, exist_ok=True)
+            fd = os.open(self.lock, os.O_RDWR | os.O_CREAT, 0o644)
+        except OSError as exc:
+            raise ConfigError(f"--out {self.out}: cannot create it ({exc.strerror}); give a directory you can write")
+        try:
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                pid = os.pread(fd, 32, 0).decode(errors="replace").strip() or "?"
+                raise ConfigError(f"{self.run_file} is being written by another run (pid {pid}): wait for it to "
+                                "finish or give another --out") from None
+            os.ftruncate(fd, 0)
+            os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+            if not overwrite and is_complete(self.run_file):
+                raise ConfigError(f"{self.run_file} holds a complete result: add --overwrite to replace it, "
+                                "or give another --out")
+            if fresh:
+                self.clear_pictures()
+            yield self
+        finally:
+            os.close(fd)  # releases the lock
+
+    def chunk(self, member0: int) -> Path:
+        """The file of the finished chunk whose first member is ``member0`` (Dask)."""
+        return self.chunks / f"chunk_{member0:09d}.h5"
+
+    def chunk_files(self) -> list[Path]:
+        """The finished chunks' files, in member order."""
+        return sorted(self.chunks.glob("chunk_*.h5"))
+
+    def clear_pictures(self) -> None:
+        """Remove the frames, movie and snapshots of an earlier run on this output."""
+        for folder, patterns in ((self.frames, ("frame_*.png",)), (self.snapshots, ("data*.h5",))):
+            for pattern in patterns:
+                for p in folder.glob(pattern):
+                    p.unlink(missing_ok=True)
+        self.movie.unlink(missing_ok=True)
+
+
+def frame_file(directory: Path, k: int) -> Path:
+    """The ``k``-th PNG frame in a frames folder (``Outputs.frames``)."""
+    return directory / f"frame_{k:04d}.png"
+
+
+def is_complete(path: Path) -> bool:
+    """Whether ``path`` is a run file marked complete (False for a missing or unreadable one)."""
+    try:
+        with h5py.File(path, "r", locking=False) as f:
+            return bool(f.attrs.get("complete", False))
+    except (OSError, ValueError):
+        return False
+
+
+def versions() -> dict[str, str]:
+    import taichi
+
+    return {"ti_dk": package_version(), "taichi": ".".join(map(str, taichi.__version__)), "numpy": np.__version__,
+            "h5py": h5py.__version__, "python": platform.python_version()}
+
+
+class RunFile:
+    """One run's HDF5 file.
+
+    Layout: attributes ``scene`` (JSON), ``versions`` (JSON), ``seed``, ``complete``,
+    ``wall_time``, ``timing``; ``/stats/time`` and ``/stats/{mean,variance,skewness,kurtosis}``
+    (only ``mean`` for a single member without time pooling) shaped ``(n_rows, *cells)`` in
+    number-density units, ``/stats/n_samples``, optional ``/stats/histogram``
+    ``(n_rows, *cells, bins)`` with attribute ``lo``; ``/diagnostics/*`` one entry per step;
+    ``/regrid/*`` one entry per regrid of a hybrid run; ``/frames/*`` one entry per frame. Every
+    row is flushed when written; ``complete`` turns true only at the end, so
+    a killed run leaves a readable file that says it is unfinished.
+    """
+
+    def __init__(self, path: Path, scene, histogram_bins: int | None = None):
+        path.parent.mkdir(parents=True, exist_ok=True)
+        require_space(path.parent, 64 << 10)
+        self.h5 = h5py.File(path, "w")
+        self.path = path
+        a = self.h5.attrs
+        a["scene"] = scene_json(scene)
+        a["versions"] = json.dumps(versions())
+        a["seed"] = np.uint64(scene.method.seed)
+        a["created"] = time.strftime("%Y-%m-%dT%H:%M:%S%z")
+        a["complete"] = False
+        st = self.h5.create_group("stats")
+        st.attrs["units"] = "number density (particles per unit volume)"
+        st.attrs["cell_volume"] = scene.grid.cell_volume
+        self._grow(st, "time", (), np.float64)
+        self._grow(st, "n_samples", (), np.int64)
+        # one member and no pooling: only the mean (= that member's density) means anything
+        self.keys = STAT_KEYS if scene.method.ensemble > 1 or scene.stats.t_equil is not None else STAT_KEYS[:1]
+        for k in self.keys:
+            self._grow(st, k, scene.grid.cells, np.float64)
+        if histogram_bins:
+            hist = self._grow(st, "histogram", (*scene.grid.cells, histogram_bins), np.int64)
+            hist.attrs["lo"] = scene.stats.histogram[0]
+            self._grow(st, "histogram_outside", scene.grid.cells, np.int64)
+        self.diag = self.h5.create_group("diagnostics")
+        self.h5.flush()
+
+    @classmethod
+    def of(cls, outputs: Outputs, scene) -> "RunFile":
+        """The run file of ``outputs``, with as many histogram bins as ``scene.stats.histogram`` asks."""
+        hist = scene.stats.histogram
+        return cls(outputs.run_file, scene, hist[1] - hist[0] + 1 if hist else None)
+
+    @staticmethod
+    def _grow(group, name, shape, dtype):
+        return group.create_dataset(name, shape=(0, *shape), maxshape=(None, *shape), dtype=dtype,
+                                    chunks=(1, *shape) if shape else (1024,))
+
+    @staticmethod
+    def _append(ds, rows) -> None:
+        rows = np.asarray(rows)
+        n = ds.shape[0]
+        ds.resize(n + rows.shape[0], axis=0)
+        ds[n:] = rows
+
+    def write_row(self, t: float, row: dict[str, np.ndarray]) -> None:
+        require_space(self.path, sum(np.asarray(v).nbytes for v in row.values()))
+        st = self.h5["stats"]
+        self._append(st["time"], [t])
+        for k, v in row.items():
+            if k in st:
+                self._append(st[k], np.asarray(v)[None])
+        self.h5.flush()
+
+    def write_rows(self, times, rows: list[dict[str, np.ndarray]]) -> None:
+        """:meth:`write_row` for each of ``rows`` (a restarted run's, a merged ensemble's)."""
+        for t, row in zip(times, rows):
+            self.write_row(t, row)
+
+    def write_diagnostics(self, diag: dict[str, list]) -> None:
+        require_space(self.path, 8 * sum(len(v) for v in diag.values()))
+        for k, v in diag.items():
+            if k not in self.diag:
+                self._grow(self.diag, k, (), np.asarray(v).dtype if len(v) else np.float64)
+            self._append(self.diag[k], v)
+        self.h5.flush()
+
+    def write_table(self, name: str, records: list[dict]) -> None:
+        """``/name/<key>``: one dataset per key of equal-keyed records (the hybrid's regrid log)."""
+        if records:
+            require_space(self.path, 8 * len(records) * len(records[0]))
+            g = self.h5.create_group(name)
+            for k in records[0]:
+                g.create_dataset(k, data=np.array([r[k] for r in records]))
+            self.h5.flush()
+
+    def annotate(self, name: str, value) -> None:
+        """Set the root attribute ``name`` (JSON text for a dict: ``timing``, ``chunks``)."""
+        self.h5.attrs[name] = json.dumps(value) if isinstance(value, dict) else value
+
+    def close(self, wall_time: float | None = None, error: str | None = None) -> None:
+        """Close the file, marked complete only without ``error``; after an I/O error, as far as the
+        file system still allows (it stays marked incomplete, as it was created)."""
+        if not self.h5.id.valid:
+            return
+        try:
+            if wall_time is not None:
+                self.h5.attrs["wall_time"] = wall_time
+            if error is not None:
+                self.h5.attrs["error"] = error
+            self.h5.attrs["complete"] = error is None
+        finally:
+            try:
+                close_h5(self.h5)
+            except OSError:
+                if error is None:
+                    raise
+
+
+def scene_json(scene) -> str:
+    """The scene as stored in every file ti_dk writes (the ``scene`` attribute)."""
+    return json.dumps(scene.to_dict())
+
+
+def same_scene(h5, scene) -> bool:
+    """Whether an HDF5 file was written for these scene settings, up to ``pool_layout`` (where the
+    particles are stored changes no bit of a run, so either layout continues the other's files)."""
+    ours, theirs = json.loads(scene_json(scene)), json.loads(h5.attrs["scene"])
+    for d in (ours, theirs):
+        d.get("hybrid", {}).pop("pool_layout", None)
+    return ours == theirs
+
+
+def write_group(f, name: str, table: dict) -> None:
+    """One dataset per entry of ``table`` under ``name``."""
+    for k, v in table.items():
+        f.create_dataset(f"{name}/{k}", data=np.asarray(v))
+
+
+def read_group(g) -> dict:
+    return {k: g[k][()] for k in g}
+
+
+def write_rows(f, rows: list[dict]) -> None:
+    """Statistics rows (with their accumulators) as ``rows/<i>/<key>``."""
+    for i, row in enumerate(rows):
+        write_group(f, f"rows/{i}", row)
+
+
+def read_rows(f) -> list[dict]:
+    return [read_group(f[f"rows/{i}"]) for i in range(len(f["rows"]))] if "rows" in f else []
+
+
+@contextmanager
+def atomic_h5(path: Path):
+    """An HDF5 file written under a temporary name and renamed once whole; removed if interrupted,
+    so whatever carries ``path`` is always complete."""
+    tmp = path.with_suffix(path.suffix + ".tmp")
+    f = h5py.File(tmp, "w")
+    try:
+        yield f
+        close_h5(f)
+    except BaseException:
+        try:
+            close_h5(f)
+        except OSError:
+            pass
+        tmp.unlink(missing_ok=True)
+        raise
+    tmp.replace(path)
+
+
+def close_h5(f) -> None:
+    """Close an HDF5 file; a write failure while flushing (disk full) is an OSError, not h5py's
+    RuntimeError, so that callers see every I/O failure as one kind of error."""
+    try:
+        f.close()
+    except RuntimeError as exc:
+        raise OSError(str(exc)) from None
+
+
+def _b(text: str) -> np.bytes_:
+    """openPMD string attributes as fixed-length bytes (what yt and openPMD-viewer expect)."""
+    return np.bytes_(text.encode())
+
+
+def pack_ids(pid: np.ndarray) -> np.ndarray:
+    """openPMD particle ids: each ``(slot at birth, birth step + 1)`` u32 pair as one u64."""
+    return (pid[:, 0].astype(np.uint64) << np.uint64(32)) | pid[:, 1].astype(np.uint64)
+
+
+def write_openpmd(directory: Path, iteration: int, t: float, dt: float, grid, density: np.ndarray,
+                  region: np.ndarray | None = None, positions: np.ndarray | None = None,
+                  ids: np.ndarray | None = None, boxes: np.ndarray | None = None) -> Path:
+    """One openPMD 1.1.0 snapshot (file-based: ``data<iteration>.h5``) of one ensemble member.
+
+    Meshes ``density`` (number density), ``negative_cells`` and, for the hybrid,
+    ``particle_region`` (1 where covered); species ``particles`` with ``position`` and ``id``;
+    the box list as ``/ti_dk/boxes`` (rows: lo..., hi... in cells), outside the base path.
+    Written to a temporary name and renamed, so a snapshot on disk is always whole.
+    """
+    directory.mkdir(parents=True, exist_ok=True)
+    path = directory / f"data{iteration:06d}.h5"
+    require_space(directory, 3 * density.nbytes + (0 if positions is None else 3 * positions.nbytes))
+    with atomic_h5(path) as f:
+        a = f.attrs
+        a["openPMD"], a["openPMDextension"] = _b("1.1.0"), np.uint32(0)
+        a["basePath"], a["meshesPath"], a["particlesPath"] = _b("/data/%T/"), _b("meshes/"), _b("particles/")
+        a["iterationEncoding"], a["iterationFormat"] = _b("fileBased"), _b("data%06T.h5")
+        a["software"], a["softwareVersion"] = _b("ti_dk"), _b(package_version())
+        a["date"] = _b(time.strftime("%Y-%m-%d %H:%M:%S %z"))
+        it = f.create_group(f"data/{iteration}")
+        it.attrs["time"], it.attrs["dt"], it.attrs["timeUnitSI"] = float(t), float(dt), 1.0
+        _openpmd_meshes(it.create_group("meshes"), grid, density, region)
+        if positions is not None:
+            _openpmd_particles(it.create_group("particles/particles"), positions, ids)
+        if boxes is not None:
+            f.create_dataset("ti_dk/boxes", data=boxes)
+            f["ti_dk"].attrs["columns"] = _b("lo (one per axis), hi (one per axis), in cells; hi exclusive")
+    return path
+
+
+def _openpmd_meshes(meshes, grid, density: np.ndarray, region: np.ndarray | None) -> None:
+    """Meshes ``density``, ``negative_cells`` and, with a region, ``particle_region``."""
+    d = grid.dim
+    labels = [_b(a) for a in "xyz"[:d]]
+    fields = {"density": (density, -d), "negative_cells": ((density < 0).astype(np.uint8), 0)}
+    if region is not None:
+        fields["particle_region"] = (region.astype(np.uint8), 0)
+    for name, (data, length_power) in fields.items():
+        ds = meshes.create_dataset(name, data=data)
+        ds.attrs["unitDimension"] = np.array([length_power, 0, 0, 0, 0, 0, 0], dtype=np.float64)
+        ds.attrs["timeOffset"] = np.float32(0.0)
+        ds.attrs["geometry"], ds.attrs["dataOrder"] = _b("cartesian"), _b("C")
+        ds.attrs["axisLabels"] = np.array(labels)
+        ds.attrs["gridSpacing"] = np.array(grid.dx, dtype=np.float64)
+        ds.attrs["gridGlobalOffset"] = np.zeros(d)
+        ds.attrs["gridUnitSI"], ds.attrs["unitSI"] = 1.0, 1.0
+        ds.attrs["position"] = np.full(d, 0.5)
+
+
+def _openpmd_particles(sp, positions: np.ndarray, ids: np.ndarray) -> None:
+    """Species records ``position``, ``positionOffset`` (constant 0) and ``id``."""
+    n, d = positions.shape
+    for rec, power in (("position", 1), ("positionOffset", 1), ("id", 0)):
+        g = sp.create_group(rec) if rec != "id" else None
+        if rec == "id":
+            g = sp.create_dataset("id", data=np.asarray(ids, dtype=np.uint64))
+            g.attrs["unitSI"] = 1.0
+        else:
+            for k, axis in enumerate("xyz"[:d]):
+                if rec == "position":
+                    c = g.create_dataset(axis, data=np.asarray(positions[:, k], dtype=np.float64))
+                else:
+                    c = g.create_group(axis)
+                    c.attrs["value"], c.attrs["shape"] = 0.0, np.array([n], dtype=np.uint64)
+                c.attrs["unitSI"] = 1.0
+        g.attrs["unitDimension"] = np.array([power, 0, 0, 0, 0, 0, 0], dtype=np.float64)
+        g.attrs["timeOffset"] = np.float32(0.0)

@@ -1,0 +1,203 @@
+"""The ``flat`` layout: one array of slots per member (:class:`ParticlePool`)."""
+
+import numpy as np
+import taichi as ti
+
+from ..core.grid import exclusive_scan, numpy_dtype
+from .slots import BLOCK, canonical, capacity
+
+
+@ti.data_oriented
+class ParticlePool:
+    """The particles of every member: buffer ``b`` of member ``e`` holds slots ``[0, n[b, e])``.
+
+    With ``buffers = 2`` a step reads one buffer, marks the slots to ``keep`` and :meth:`compact`
+    copies them, in order, to the front of the other; a member that needs more than
+    ``capacity`` slots gets a larger pool from :meth:`grown`. With ``ids`` every particle carries
+    its identity (two words that key its random numbers; otherwise the slot is the identity).
+    """
+
+    def __init__(self, ensemble: int, capacity: int, dim: int, real, buffers: int = 2, ids: bool = True):
+        self.ensemble, self.capacity, self.dim, self.real = ensemble, capacity, dim, real
+        self.buffers, self.ids = buffers, ids
+        self.cell_ordered = False  # slots are not grouped by cell (the hybrid sorts them at regrids)
+        self.blocks = -(-capacity // BLOCK)  # compaction blocks per member
+        self.x = ti.Vector.field(dim, real, shape=(buffers, ensemble, capacity))  # positions [length]
+        if ids:  # identity: two words keying the particle's random numbers (solver-defined)
+            self.pid = ti.Vector.field(2, ti.u32, shape=(buffers, ensemble, capacity))
+        self.n = ti.field(ti.i32, shape=(buffers, ensemble))  # occupied slots per buffer and member
+        self.kept = ti.field(ti.i32, shape=ensemble)  # slots the last compaction kept, per member
+        self.span = ti.field(ti.i32, shape=())  # blocks holding particles in the buffer a loop reads (units)
+        if buffers == 2:
+            self.keep = ti.field(ti.u8, shape=(ensemble, capacity))  # 1: the slot survives the compaction
+            self.offset = ti.field(ti.i32, shape=(ensemble, self.blocks))  # first target slot of each block
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes of the pool's slot fields (positions, identities, marks)."""
+        slot = self.dim * np.dtype(numpy_dtype(self.real)).itemsize + 8 * self.ids
+        return self.ensemble * self.capacity * (self.buffers * slot + (self.buffers == 2))
+
+    def grown(self, capacity: int) -> "ParticlePool":
+        """This pool, or (when ``capacity`` exceeds its own) a new one holding the same particles,
+        with a quarter more slots than asked and at least twice the old: every new pool recompiles
+        the kernels that take it (2.2 s at step 10 of ellipse2d, whose first regrid asked for 7 %
+        more than the initial fit), so a region that drifts between regrids should not grow it."""
+        if capacity <= self.capacity:
+            return self
+        capacity = max(capacity + capacity // 4, 2 * self.capacity)
+        new = ParticlePool(self.ensemble, capacity, self.dim, self.real, self.buffers, self.ids)
+        new.load(self.x.to_numpy(), self.pid.to_numpy() if self.ids else None, self.n.to_numpy())
+        new.kept.from_numpy(self.kept.to_numpy())
+        return new
+
+    def load(self, x: np.ndarray, pid: np.ndarray | None, n: np.ndarray) -> None:
+        """Fill from host arrays ``(b, ensemble, slots, …)`` of at most ``buffers`` buffers and
+        ``capacity`` slots (``n``: ``(buffers, ensemble)``); everything else is zeroed."""
+        b, k = x.shape[0], x.shape[2]
+        px = np.zeros((self.buffers, self.ensemble, self.capacity, self.dim), dtype=numpy_dtype(self.real))
+        px[:b, :, :k] = x
+        self.x.from_numpy(px)
+        if self.ids:
+            ppid = np.zeros((self.buffers, self.ensemble, self.capacity, 2), dtype=np.uint32)
+            ppid[:b, :, :k] = pid
+            self.pid.from_numpy(ppid)
+        self.n.from_numpy(np.ascontiguousarray(n, dtype=np.int32))
+
+    def occupied(self, b: int) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
+        """Buffer ``b`` on the host: positions and identities of slots ``[0, max n)`` (each
+        member's sorted by :func:`canonical` when the pool has ids), and ``n``."""
+        n = self.n.to_numpy()[b]
+        top = max(1, int(n.max()))
+        x = self.x.to_numpy()[b, :, :top]
+        return canonical(x, self.pid.to_numpy()[b, :, :top], n) if self.ids else (x, None, n)
+
+    # -- the hybrid's interface (see the module docstring) ----------------------------------
+    def fitted(self, need: np.ndarray, cells: np.ndarray) -> "ParticlePool":
+        """A pool with room for ``need`` (``(ensemble, *cells)``: slots each cell may ask for) in
+        every member (``cells``: where particles may lie; every cell may, here)."""
+        axes = tuple(range(1, need.ndim))
+        return self.grown(capacity(float(need.sum(axis=axes).max()) if self.ensemble else 0.0))
+
+    def retain(self, cells: np.ndarray) -> None:
+        """Nothing to release: the slots of a member are not tied to cells."""
+
+    def restored(self, x: np.ndarray, pid: np.ndarray, n: np.ndarray, cells: np.ndarray) -> "ParticlePool":
+        """A pool holding ``x``, ``pid`` (``(ensemble, slots, …)``, member ``e`` in its first ``n[e]``
+        slots) in buffer 0, as after a compaction."""
+        new = self.grown(capacity(x.shape[1]))
+        new.load(x[None], pid[None], np.stack([n, np.zeros_like(n)]))
+        new.kept.from_numpy(n.astype(np.int32))
+        return new
+
+    def compacted(self, b: int) -> "ParticlePool":
+        """:meth:`compact` buffer ``b`` into the other (a flat pool never needs more room)."""
+        self.compact(b)
+        return self
+
+    @ti.func
+    def assume_active(self):
+        """Nothing to do: a flat pool has no sparse storage (see :meth:`BlockPool.assume_active`)."""
+
+    @ti.func
+    def units(self, b):
+        """Units of the particle loop over buffer ``b``: the chunks of :data:`BLOCK` slots of every
+        member up to the fullest member's last particle (:attr:`span` chunks per member).
+
+        Taichi 1.7.4's CPU backend (its default ``make_cpu_multithreading_loop`` transform) cuts a
+        parallel range into one contiguous block per thread of at least 512 iterations. So the
+        range is set here, at run time, not over the capacity: the empty slots beyond the
+        particles (a third or more of a hybrid's pool) went to the last thread while the first
+        walked every particle (a loop over 1.1 M slots whose first half held the work: 277 ms on
+        1 thread and on 2; 2× faster with the range ending at the work). And the units are small
+        (:data:`BLOCK`): with 256 slots, ellipse2d's 70,000 particles made 274 units, one block,
+        and its walk ran on one thread (2.25 ms on 1 thread, 2.10 on 2; with 32 slots 2.12 and
+        1.35)."""
+        self.span[None] = 0
+        ti.loop_config(serialize=True)  # over members: a serial task (grid.exclusive_scan)
+        for e in range(self.ensemble):
+            ti.atomic_max(self.span[None], ti.min((self.n[b, e] + BLOCK - 1) // BLOCK, self.blocks))
+        return self.ensemble * self.span[None]
+
+    @ti.func
+    def unit(self, b, u):
+        """Member, key and occupied slot range ``[lo, hi)`` of unit ``u`` of :meth:`units` in buffer ``b``."""
+        span = self.span[None]
+        e, k = u // span, u % span
+        return e, ti.Vector([e, 0]), k * BLOCK, ti.min(k * BLOCK + BLOCK, self.n[b, e])
+
+    @ti.func
+    def unit_of(self, e, C):
+        """The key of the unit that takes new particles of cell ``C`` of member ``e``."""
+        return ti.Vector([e, 0])
+
+    @ti.func
+    def first_new(self, U):
+        """The first slot of unit ``U`` appended since the last compaction (the ghosts of a step)."""
+        return self.kept[U[0]]
+
+    @ti.func
+    def index(self, b, U, p):
+        """The index in ``x`` and ``pid`` of slot ``p`` of unit ``U`` in buffer ``b``."""
+        return ti.Vector([b, U[0], p])
+
+    @ti.func
+    def append(self, b, U, m):
+        """Reserve ``m`` slots of unit ``U`` in buffer ``b``; returns the first (it may lie beyond
+        ``capacity``: the caller then asks for a larger pool)."""
+        return ti.atomic_add(self.n[b, U[0]], m)
+
+    @ti.func
+    def mark(self, I, keep, D):
+        """Whether slot ``I`` survives the next compaction (``D``: the member-first cell it lies in)."""
+        self.keep[I[1], I[2]] = ti.u8(keep)
+
+    @ti.func
+    def marked(self, I):
+        return self.keep[I[1], I[2]] != 0
+
+    @ti.func
+    def unmark(self, I):
+        self.keep[I[1], I[2]] = ti.u8(0)
+
+    @ti.kernel
+    def compact(self, b: ti.i32):
+        """Copy the slots of buffer ``b`` marked in :attr:`keep` to the front of the other buffer,
+        in order (per-block counts, an exclusive scan over blocks, a scatter); :attr:`kept` and
+        the other buffer's ``n`` get the count."""
+        nxt = 1 - b
+        for u in range(self.units(b)):
+            e, _, lo, hi = self.unit(b, u)
+            c = 0
+            for p in range(lo, hi):
+                c += ti.cast(self.keep[e, p], ti.i32)
+            self.offset[e, lo // BLOCK] = c
+        ti.loop_config(serialize=True)  # a serial task (grid.exclusive_scan)
+        for e in range(self.ensemble):
+            total = exclusive_scan(self.offset, e, self.span[None])
+            self.n[nxt, e] = total
+            self.kept[e] = total
+        for u in range(self.ensemble * self.span[None]):  # the units of the first loop
+            e, _, lo, hi = self.unit(b, u)
+            j = self.offset[e, lo // BLOCK]
+            for p in range(lo, hi):
+                if self.keep[e, p]:
+                    self.x[nxt, e, j] = self.x[b, e, p]
+                    if ti.static(self.ids):
+                        self.pid[nxt, e, j] = self.pid[b, e, p]
+                    j += 1
+
+    @ti.kernel
+    def truncate(self, b: ti.i32):
+        """Drop what was appended to buffer ``b`` since the last compaction."""
+        ti.loop_config(serialize=True)  # a serial task (grid.exclusive_scan)
+        for e in range(self.ensemble):
+            self.n[b, e] = self.kept[e]
+
+    @ti.kernel
+    def settle(self, b: ti.i32):
+        """Keep what was appended to buffer ``b`` since the last compaction, where it lies: what
+        :meth:`compacted` gives when every slot is marked, without the copy."""
+        ti.loop_config(serialize=True)  # a serial task (grid.exclusive_scan)
+        for e in range(self.ensemble):
+            self.kept[e] = self.n[b, e]

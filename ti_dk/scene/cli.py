@@ -1,0 +1,137 @@
+"""``python -m ti_dk.scene NAME|PATH``: run a scene from the command line.
+
+Exit status: 0 done; 2 bad input (one line saying what to change; nothing written); 1 the run
+failed (I/O error, unstable scheme; the output is marked incomplete); 130/143 stopped by SIGINT or
+SIGTERM (output closed and marked incomplete).
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import warnings
+
+from . import estimates, load, schema
+from ..control import controller, ensemble, runtime
+from ..output.files import OutputError
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse with one-line errors (no usage block), as every other input error."""
+
+    def error(self, message: str):
+        sys.exit(_fail(f"{message}: see python -m ti_dk.scene --help"))
+
+
+class _Help(argparse.RawDescriptionHelpFormatter):
+    """Defaults shown where there is one, and only once."""
+
+    def _get_help_string(self, action):
+        text = action.help or ""
+        if action.default not in (None, False, [], argparse.SUPPRESS) and "default" not in text:
+            text += " (default: %(default)s)"
+        return text
+
+
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    p = _Parser(prog="python -m ti_dk.scene", description=__doc__, formatter_class=_Help,
+                epilog="scene keys, for --set KEY=VALUE (or the scene's TOML file):\n" + schema.keys_help())
+    p.add_argument("scene", help=f"scene name ({', '.join(load.available_scenes())}) or a .toml path")
+    p.add_argument("--method", help="override the scene's method (" + ", ".join(schema.METHODS) + ")")
+    p.add_argument("--ensemble", type=int, help="number of independent members")
+    p.add_argument("--seed", type=int, help="random seed in [0, 2^64 - 1] (same seed, same result on any thread count)")
+    p.add_argument("--t-end", type=float, help="end time")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                   help="override any scene key (list below), e.g. --set C=0.05 --set cells=[64,64]")
+    p.add_argument("--out", default="renders", help="output directory for <scene>_<method>.h5 and the rest")
+    p.add_argument("--overwrite", action="store_true", help="replace a complete result already in --out")
+    p.add_argument("--arch", default="cpu", help="Taichi backend: cpu or cuda")
+    p.add_argument("--threads", type=int, help="CPU threads (default: all cores)")
+    p.add_argument("--no-progress", action="store_true", help="hide the progress bar")
+    p.add_argument("--quick", action="store_true", help="a seconds-long preview: a quarter of the cells per axis")
+    p.add_argument("--no-frames", action="store_true", help="write no PNG frames (2D/3D scenes)")
+    p.add_argument("--movie", action="store_true",
+                   help="also write movie_frames evenly spaced frames and <scene>_<method>.mp4 beside the run file")
+    p.add_argument("--no-snapshots", action="store_true", help="write no openPMD snapshots (2D/3D scenes)")
+    p.add_argument("--checkpoint-every", type=int, default=0, metavar="K",
+                   help="write <scene>_<method>_checkpoint.h5 every K steps (default: never)")
+    p.add_argument("--restart", metavar="FILE", help="continue from a checkpoint written by --checkpoint-every")
+    p.add_argument("--executor", choices=ensemble.EXECUTORS, default="local",
+                   help="local: the batched ensemble in this process; dask: chunks of members on Dask workers")
+    p.add_argument("--workers", type=int, help="dask: worker processes of the local cluster (default: 2)")
+    p.add_argument("--chunk", type=int, help="dask: members per chunk (default: ensemble / (4 workers))")
+    p.add_argument("--scheduler", help="dask: address of an existing cluster instead of a local one")
+    return p.parse_args(argv)
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
+    overrides = {}
+    for item in args.set:
+        key, sep, value = item.partition("=")
+        if not sep or not key.strip():
+            return _fail(f"--set {item!r}: write KEY=VALUE, e.g. --set C=0.05")
+        overrides[key.strip()] = load.parse_value(value.strip(), key.strip())
+    for key in ("method", "ensemble", "seed", "t_end"):
+        if getattr(args, key) is not None:
+            overrides[key] = getattr(args, key)
+    with runtime.stop_on_signals():
+        try:
+            with warnings.catch_warnings(record=True) as caught:
+                warnings.simplefilter("always", schema.ClampWarning)
+                scene = load.load_scene(args.scene, **overrides)
+                if args.quick and "cells" not in overrides:
+                    scene = load.load_scene(args.scene, **overrides, cells=[max(8, n // 4) for n in scene.grid.cells])
+            for w in caught:
+                print(f"ti_dk: warning: {w.message}", file=sys.stderr)
+            load.check_options(scene, out=args.out, executor=args.executor, workers=args.workers,
+                                 chunk=args.chunk, threads=args.threads, scheduler=args.scheduler,
+                                 checkpoint_every=args.checkpoint_every, restart=args.restart, movie=args.movie)
+            runtime.init(args.arch, args.threads)
+            _announce(scene)
+            if args.executor == "dask":
+                result = ensemble.run(scene, "dask", out=args.out, progress=not args.no_progress, chunk=args.chunk,
+                                      workers=args.workers or 2, threads=args.threads or 1,
+                                      scheduler=args.scheduler, overwrite=args.overwrite)
+            else:
+                result = controller.run(scene, out=args.out, progress=not args.no_progress, frames=not args.no_frames,
+                                 movie=args.movie, snapshots=not args.no_snapshots, overwrite=args.overwrite,
+                                 checkpoint_every=args.checkpoint_every, restart=args.restart)
+        except schema.ConfigError as exc:
+            return _fail(str(exc))
+        except runtime.Stopped as exc:
+            return _fail(str(exc), exc.status)
+        except OutputError as exc:
+            _fail(str(exc), 1)
+            _exit_now(1)
+        except runtime.SimulationError as exc:
+            return _fail(str(exc), 1)
+    print(controller.summary(result))
+    return 0
+
+
+LONG_RUN = 60.0  # seconds: runs estimated to take longer say so before they start
+
+
+def _announce(scene: schema.Scene) -> None:
+    """Say how many steps a long run takes and roughly how long, before it starts."""
+    steps, seconds = estimates.work_estimate(scene)
+    if seconds > LONG_RUN:
+        when = f"{seconds / 3600:.3g} h" if seconds > 3600 else f"{seconds / 60:.3g} min"
+        print(f"ti_dk: {steps:,} steps of dt = {scene.dt:.4g} for {scene.method.ensemble:,} member(s) of "
+              f"{'x'.join(map(str, scene.grid.cells))} cells: about {when} on 2 CPU cores (a rough estimate)",
+              file=sys.stderr)
+
+
+def _exit_now(status: int):
+    """Leave at once after an I/O failure: an HDF5 file that could not be flushed (a full disk) can
+    crash the interpreter when it is released at exit, so nothing more is released."""
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(status)
+
+
+def _fail(message: str, status: int = 2) -> int:
+    print(f"ti_dk: error: {message}", file=sys.stderr)
+    return status
+
