@@ -75,6 +75,12 @@ def test_subpackages_and_no_import_circles():
         visit(m, [m])
 
 
+def test_every_import_of_ti_dk_names_a_module_that_exists():
+    missing = [f"{_name(p)}: {m}" for p in MODULES for m in _imports(p)
+               if not ((ROOT / (m.replace(".", "/") + ".py")).exists() or (ROOT / m.replace(".", "/") / "__init__.py").exists())]
+    assert not missing
+
+
 def test_no_module_reaches_into_another_modules_private_names():
     reaches = []
     for path in MODULES:
