@@ -100,8 +100,8 @@ def work_estimate(scene: Scene) -> tuple[int, float]:
     The hybrid adds its particles, counted as the cells tagged at the start holding ``threshold``
     each (half that in a fixed region, which fills from its start), and a regrid's pass over the
     grid every step when extensions are on (``regrid_floor > 0``), else every ``regrid_interval``
-    steps. Measured against (benchmarks/RESULTS.md): sphere3d 7.0 min estimated, 6.6 min run;
-    ellipse2d 49 s and 51–56 s; void1d with 20,000 members 32 s and 25 s (fv), 299 s and 211 s (hybrid).
+    steps. The rates are rounded down from ``benchmarks/RESULTS.md``, where the estimates are also
+    compared with whole runs.
     """
     cells = math.prod(scene.grid.cells)
     mc = scene.method.ensemble * cells
