@@ -155,7 +155,7 @@ def _red(px):
 RING = [((4, 4), (28, 10)), ((4, 10), (10, 20)), ((18, 10), (28, 20)), ((4, 20), (28, 26))]
 
 
-def test_boxes_are_drawn_inside_the_region_and_holes_are_dashed():
+def test_boxes_are_drawn_inside_the_region_and_holes_are_dotted():
     n, vmax = 32, 40.0
     r = Renderer((n, n), (1.0, 1.0), 1, vmax, "test")
     ppc = np.full((n, n), 2 * vmax)  # the brightest colour everywhere: lines are what is not yellow
@@ -178,9 +178,9 @@ def test_boxes_are_drawn_inside_the_region_and_holes_are_dashed():
 
     outer, hole = darkest(4, 4, 28), darkest(10, 10, 18)  # the region's lower edge; the hole's
     assert outer.max() < 90  # a continuous black line
-    assert 0.2 < (hole < 90).mean() < 0.8 and hole.max() > 200  # black dashes on white
+    assert 0.2 < (hole < 90).mean() < 0.8 and hole.max() > 200  # black dots on white
     assert not _red(img[Y(10) - 1:Y(10) + 2, X(10) + round(s):X(18) - round(s)]).any()  # no box line there
-    assert "holes dashed" in r.axes[0][0].get_title()
+    assert "holes dotted" in r.axes[0][0].get_title()
 
 
 def test_holes_and_box_edges_from_a_mask_set_by_hand():

@@ -15,7 +15,7 @@ The particle region (the union of the hybrid's boxes) is outlined in black insid
 visible on every colour; the outline is that of the cell mask. The Berger–Rigoutsos boxes it is
 made of are drawn inside it as thin red lines (``BOX``; where a box side lies on the region's
 edge the outline covers it). A hole in the region (uncovered cells that no path of face
-neighbours outside the region links to the domain's edge, :func:`holes`) is outlined by a dashed
+neighbours outside the region links to the domain's edge, :func:`holes`) is outlined by a dotted
 black line on white, so it is not mistaken for a box edge or the region's outer edge. Each side
 of an axis is labelled with its boundary kind (``periodic``, ``neumann``, ``dirichlet ρ=…`` in
 particles per cell, :func:`side_labels`).
@@ -48,7 +48,7 @@ from ..hybrid.regrid import mask as region_mask
 DPI = 100  # figure pixels per inch: sizes below are in pixels
 LEFT, GAP, TOP, ROW_HEAD, BOTTOM, BAR = 56, 62, 34, 22, 42, 74  # layout [pixels]
 OUTLINE = [dict(color="white", lw=2.6, capstyle="projecting"), dict(color="black", lw=1.0, capstyle="projecting")]
-HOLE = [dict(color="white", lw=2.6, capstyle="butt"), dict(color="black", lw=1.4, linestyle=(0, (2.5, 2.0)))]
+HOLE = [dict(color="white", lw=2.2, capstyle="butt"), dict(color="black", lw=1.2, linestyle=(0, (1.2, 1.2)))]
 BOX = dict(color=(0.95, 0.35, 0.25), lw=0.8)  # the region's boxes: thin red lines (the 3D hull's colour)
 VIEW = (35.0, 25.0)  # volume rendering: azimuth and elevation of the viewer [degrees]
 HULL_RGB = BOX["color"]  # volume rendering: colour of the particle region's translucent hull
@@ -163,12 +163,14 @@ def dirichlet_ppc(boundary, reservoir_ppc) -> list[float]:
 class Renderer:
     """Frames of a grid of ``cells`` (lengths ``lengths``) with ``rows`` methods, densities on
     ``[0, vmax]`` particles per cell, headed by ``title``; ``sides``: per axis the (lower, upper)
-    sides' labels (:func:`side_labels`; None: none)."""
+    sides' labels (:func:`side_labels`; None: none); ``dense``: 3D, the largest initial density
+    that the volume rendering's shell levels are fractions of (None: m with m + 3√m = vmax)."""
 
-    def __init__(self, cells, lengths, rows: int, vmax: float, title: str, sides=None):
+    def __init__(self, cells, lengths, rows: int, vmax: float, title: str, sides=None, dense: float | None = None):
         self.cells, self.lengths = tuple(int(n) for n in cells), tuple(float(v) for v in lengths)
         self.dim, self.rows, self.vmax, self.title = len(self.cells), rows, float(vmax), title
         self.sides = sides
+        m = (math.sqrt(9 / 4 + self.vmax) - 1.5) ** 2 if dense is None else dense  # m + 3√m = vmax
         self.dx = tuple(L / n for L, n in zip(self.lengths, self.cells))
         target = 512 if self.dim == 2 else 256  # pixels along the longest side of a panel
         self.s = max(1, target // max(round(L / min(self.dx)) for L in self.lengths))  # pixels per finest cell
@@ -177,7 +179,7 @@ class Renderer:
         self.norm = Normalize(0.0, self.vmax)
         if self.dim == 3:
             self.planes = (((0, 1), 2), ((0, 2), 1), ((1, 2), 0))  # (shown axes, cut axis)
-            self.volume = Volume(self.cells, self.cmap, self.vmax)
+            self.volume = Volume(self.cells, self.cmap, self.vmax, m)
         else:
             self.planes = (((0, 1), None),)
         self._layout()
@@ -190,10 +192,11 @@ class Renderer:
         g, m = scene.grid, scene.method
         methods = m.name + (f" (left) and {m.compare} (right)" if compared and g.dim == 2 else
                             f" (top) and {m.compare} (bottom)" if compared else "")
-        vmax = scene.output.color_max or colour_max(scene.initial_ppc, dirichlet_ppc(g.boundary, g.reservoir_ppc))
+        ppc0 = scene.initial_ppc
+        vmax = scene.output.color_max or colour_max(ppc0, dirichlet_ppc(g.boundary, g.reservoir_ppc))
         return cls(g.cells, g.lengths, 1 + compared, vmax,
                    f"{scene.name}: {methods}, {'×'.join(map(str, g.cells))} cells, member 0",
-                   side_labels(g.boundary, g.reservoir_ppc))
+                   side_labels(g.boundary, g.reservoir_ppc), float(np.max(ppc0)))
 
     # -- layout (once) ------------------------------------------------------------------
     def _size(self, axes) -> tuple[int, int]:
@@ -331,7 +334,7 @@ class Renderer:
             text = f"{p.title}: {neg:,} negative cell{'s' * (neg != 1)}"
             if region is not None:
                 text += (f"; particle region {int(region.sum()):,} cells in {len(p.boxes)} "
-                         f"box{'es' * (len(p.boxes) != 1)} (red){'; holes dashed' * any_hole}")
+                         f"box{'es' * (len(p.boxes) != 1)} (red){'; holes dotted' * any_hole}")
             if self.dim == 2:
                 self.axes[r][0].set_title(text, fontsize=10)
             else:
@@ -392,11 +395,10 @@ class Volume:
 
     LEVELS, SHELL, HULL, NEGATIVE = (0.25, 0.6), 0.3, 0.15, 0.5
 
-    def __init__(self, cells, cmap, vmax: float):
+    def __init__(self, cells, cmap, vmax: float, dense: float):
         self.cells = tuple(cells)
         self.vmax = float(vmax)
-        m = (math.sqrt(9 / 4 + vmax) - 1.5) ** 2  # the largest initial density: m + 3√m = vmax
-        self.levels = [f * m for f in self.LEVELS]
+        self.levels = [f * dense for f in self.LEVELS]  # fractions of the largest initial density
         self.lut = ti.Vector.field(3, ti.f64, shape=256)  # colormap table
         self.lut.from_numpy(cmap(np.linspace(0, 1, 256))[:, :3])
         self.img = None  # RGB [0, 1], (size, size): allocated at the first call
