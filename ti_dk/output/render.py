@@ -187,7 +187,7 @@ class Renderer:
     @classmethod
     def of(cls, scene, compared: bool = False) -> "Renderer":
         """The frames of a 2D or 3D ``scene`` (with ``compared``, its ``compare`` method beside or
-        below): colour range ``color_max``, else :func:`colour_max` of the initial density and the
+        below): colour range ``color_max``, or if 0 :func:`colour_max` of the initial density and the
         Dirichlet reservoirs; each side labelled with its boundary kind."""
         g, m = scene.grid, scene.method
         methods = m.name + (f" (left) and {m.compare} (right)" if compared and g.dim == 2 else
