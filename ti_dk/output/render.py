@@ -265,7 +265,7 @@ class Renderer:
             self._side_labels(ax, a, b)
         if cut is not None:
             c = (self.cells[cut] // 2 + 0.5) * self.dx[cut]
-            ax.set_title(f"{names[a]}{names[b]} slice, {names[cut]} = {c:.3g}", fontsize=9)
+            ax.set_title(f"{names[a]}{names[b]} slice, {names[cut]} = {c:.3g} L", fontsize=9)
         return image, lines
 
     def _side_labels(self, ax, a: int, b: int):
@@ -336,7 +336,7 @@ class Renderer:
                 text += (f"; particle region {int(region.sum()):,} cells in {len(p.boxes)} "
                          f"box{'es' * (len(p.boxes) != 1)} (red){'; holes dotted' * any_hole}")
             if self.dim == 2:
-                self.axes[r][0].set_title(text, fontsize=10)
+                self.axes[r][0].set_title(text, fontsize=9.5)
             else:
                 self.row_titles[r].set_text(text)
             if self.dim == 3:
