@@ -254,7 +254,7 @@ def _frame_writer(outputs: Outputs, scene: Scene, other: Solver | None):
     """The frame writer of this scene: moment profiles in 1D, density panels in 2D and 3D."""
     from ..output.render import FrameWriter
 
-    return FrameWriter(outputs.frames, _renderer(scene, scene.initial_ppc, other))
+    return FrameWriter(outputs.frames, _renderer(scene, other))
 
 
 def summary(result: Result) -> str:
@@ -317,16 +317,12 @@ def _close_quietly(rf: RunFile, wall: float, error: str) -> None:
         pass
 
 
-def _renderer(scene: Scene, ppc: np.ndarray, other: Solver | None):
+def _renderer(scene: Scene, other: Solver | None):
     """What draws this scene's frames: moment profiles in 1D, density panels in 2D and 3D."""
     if scene.grid.dim == 1:
         from ..output.profiles import ProfileRenderer
 
         return ProfileRenderer(scene)
-    from ..output.render import Renderer, colour_max
+    from ..output.render import Renderer
 
-    methods = scene.method.name + (f" (left) and {scene.method.compare} (right)" if other and scene.grid.dim == 2 else
-                              f" (top) and {scene.method.compare} (bottom)" if other else "")
-    return Renderer(scene.grid.cells, scene.grid.lengths, 1 + bool(other), colour_max(ppc),
-                    f"{scene.name}: {methods}, {'×'.join(map(str, scene.grid.cells))} cells, member 0")
-
+    return Renderer.of(scene, compared=other is not None)

@@ -150,7 +150,7 @@ class Stats:
     mean: np.ndarray  # (rows, *cells) [1/volume]
     variance: np.ndarray  # (rows, *cells) [1/volume²]
     skewness: np.ndarray  # (rows, *cells), dimensionless
-    kurtosis: np.ndarray  # (rows, *cells), excess, dimensionless
+    kurtosis: np.ndarray  # (rows, *cells), non-excess (3 for a Gaussian: Moments.kurtosis), dimensionless
     n_samples: np.ndarray  # (rows,) densities pooled into each row (members × time samples)
     histogram: np.ndarray | None = None  # particles per cell, bins hist_lo … (one particle wide)
     hist_lo: int | None = None  # the particle count of the first histogram bin

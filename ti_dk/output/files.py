@@ -17,6 +17,7 @@ import h5py
 import numpy as np
 
 from ..scene.schema import ConfigError
+from .units import units_of
 
 STAT_KEYS = ("mean", "variance", "skewness", "kurtosis")
 
@@ -164,13 +165,30 @@ class RunFile:
     """One run's HDF5 file.
 
     Layout: attributes ``scene`` (JSON), ``versions`` (JSON), ``seed``, ``complete``,
-    ``wall_time``, ``timing``; ``/stats/time`` and ``/stats/{mean,variance,skewness,kurtosis}``
-    (only ``mean`` for a single member without time pooling) shaped ``(n_rows, *cells)`` in
-    number-density units, ``/stats/n_samples``, optional ``/stats/histogram``
-    ``(n_rows, *cells, bins)`` with attribute ``lo``; ``/diagnostics/*`` one entry per step;
-    ``/regrid/*`` one entry per regrid of a hybrid run; ``/frames/*`` one entry per frame. Every
-    row is flushed when written; ``complete`` turns true only at the end, so
-    a killed run leaves a readable file that says it is unfinished.
+    ``wall_time``, ``timing``; ``/stats/time``, ``/stats/n_samples`` and
+    ``/stats/{mean,variance,skewness,kurtosis}`` shaped ``(n_rows, *cells)``, optional
+    ``/stats/histogram`` ``(n_rows, *cells, bins)`` with attribute ``lo`` and
+    ``/stats/histogram_outside``; ``/diagnostics/{time,mass,min_density,negative_cells,
+    boundary_inflow,clamped_steps}`` one entry per step (hybrid: also ``particles`` and
+    ``regrid_change``; a compared method: ``compare_{mass,min_density,negative_cells}``);
+    ``/regrid/{step,boxes,covered_cells,efficiency,created,removed,on_demand}`` one entry per
+    regrid of a hybrid run; ``/frames/{time,negative_cells}`` one entry per frame.
+
+    Units: every dataset carries a ``units`` attribute (:data:`ti_dk.output.units.UNITS`). The
+    statistics are of the number density, per unit volume (``/stats`` attribute ``cell_volume``
+    turns them into particles per cell); skewness κ3/κ2^{3/2} and kurtosis κ4/κ2² + 3
+    (non-excess: 3 for a Gaussian) are dimensionless; histograms and frames count particles per
+    cell. Diagnostics and regrid records are sums over the ensemble's members (``min_density``
+    is the minimum over members and cells): ``diagnostics/mass`` is in particles summed over
+    members. Times are in L²/2D.
+
+    Ensemble-only: ``variance``, ``skewness`` and ``kurtosis`` need two or more densities per
+    row, so a run of one member without time pooling (``t_equil`` unset) writes only ``mean``
+    (that member's density) and ``n_samples``; the ``/stats`` attribute ``ensemble_only`` names
+    them in every file, ``omitted`` those this file leaves out.
+
+    Every row is flushed when written; ``complete`` turns true only at the end, so a killed run
+    leaves a readable file that says it is unfinished.
     """
 
     def __init__(self, path: Path, scene, histogram_bins: int | None = None):
@@ -191,6 +209,8 @@ class RunFile:
         self._grow(st, "n_samples", (), np.int64)
         # one member and no pooling: only the mean (= that member's density) means anything
         self.keys = STAT_KEYS if scene.method.ensemble > 1 or scene.stats.t_equil is not None else STAT_KEYS[:1]
+        st.attrs["ensemble_only"] = " ".join(STAT_KEYS[1:])
+        st.attrs["omitted"] = " ".join(k for k in STAT_KEYS if k not in self.keys)
         for k in self.keys:
             self._grow(st, k, scene.grid.cells, np.float64)
         if histogram_bins:
@@ -208,8 +228,9 @@ class RunFile:
 
     @staticmethod
     def _grow(group, name, shape, dtype):
-        return group.create_dataset(name, shape=(0, *shape), maxshape=(None, *shape), dtype=dtype,
-                                    chunks=(1, *shape) if shape else (1024,))
+        ds = group.create_dataset(name, shape=(0, *shape), maxshape=(None, *shape), dtype=dtype,
+                                  chunks=(1, *shape) if shape else (1024,))
+        return _label(ds)
 
     @staticmethod
     def _append(ds, rows) -> None:
@@ -246,7 +267,7 @@ class RunFile:
             require_space(self.path, 8 * len(records) * len(records[0]))
             g = self.h5.create_group(name)
             for k in records[0]:
-                g.create_dataset(k, data=np.array([r[k] for r in records]))
+                _label(g.create_dataset(k, data=np.array([r[k] for r in records])))
             self.h5.flush()
 
     def annotate(self, name: str, value) -> None:
@@ -270,6 +291,14 @@ class RunFile:
             except OSError:
                 if error is None:
                     raise
+
+
+def _label(ds):
+    """``ds`` with its ``units`` attribute (:func:`ti_dk.output.units.units_of`), where one is listed."""
+    units = units_of(ds.name)
+    if units is not None:
+        ds.attrs["units"] = units
+    return ds
 
 
 def scene_json(scene) -> str:

@@ -218,6 +218,8 @@ class OutputKeys:
     """``[output]``: what the run draws beyond its statistics."""
 
     movie_frames: int = key("int", "--movie: frames evenly spaced in time", 48, lo=1, hi=10_000)
+    color_max: float = key("real", "2D/3D frames: top of the colour range in particles per cell (0: the largest "
+                           "initial or reservoir density + 3 Poisson sd)", 0.0, lo=0.0, hi=MAX_PPC)
 
 
 SECTIONS = {"grid": GridKeys, "init": InitKeys, "time": TimeKeys, "method": MethodKeys, "hybrid": HybridKeys,
