@@ -17,6 +17,7 @@ and :func:`work_estimate`, all before Taichi starts.
 from __future__ import annotations
 
 import dataclasses
+import importlib.resources
 import inspect
 import math
 import re
@@ -31,7 +32,21 @@ from ..core.grid import Geometry
 from ..hybrid.regrid import RegridParams
 from ..pools import LAYOUTS as POOL_LAYOUTS
 
-SCENE_DIR = Path(__file__).resolve().parents[2] / "scenes"
+
+def scene_dir() -> Path:
+    """Where the scene files are: the package data ``ti_dk.scenes`` through :mod:`importlib.resources`.
+
+    An installed ti_dk (wheel or editable) has it: pyproject.toml installs the top-level
+    ``scenes/`` folder as that package. A source checkout imported without installing does not;
+    then its own ``scenes/`` folder, next to ``ti_dk/``.
+    """
+    try:
+        return Path(str(importlib.resources.files("ti_dk.scenes")))
+    except ModuleNotFoundError:
+        return Path(__file__).resolve().parents[2] / "scenes"
+
+
+SCENE_DIR = scene_dir()
 METHODS = ("fv", "gaussian", "particle", "hybrid")
 SPDES = ("fv", "gaussian")  # the SPDE a hybrid run keeps on the whole grid
 GHOST_PROFILES = ("mean", "linear", "uniform")  # how sampled particles lie in their cell (see HybridSolver)
