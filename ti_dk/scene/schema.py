@@ -357,7 +357,7 @@ def _default(name: str) -> Any:
 
 
 def keys_help() -> str:
-    """Every scene key, table by table: name, doc, what it takes, default (``--help`` and the README)."""
+    """Every scene key, table by table: name, doc, what it takes, default (``--help`` and docs/scenes.md)."""
     tables: dict[str, list[str]] = {}
     for name, k in KEYS.items():
         sec = WHERE[name][0] if name in WHERE else "init"
