@@ -158,7 +158,7 @@ class Stats:
     skewness : numpy.ndarray
         ``(rows, *cells)``, dimensionless.
     kurtosis : numpy.ndarray
-        ``(rows, *cells)``, excess kurtosis (0 for a Gaussian), dimensionless.
+        ``(rows, *cells)``, kurtosis, not excess (3 for a Gaussian, as in the paper's Fig. 3), dimensionless.
     n_samples : numpy.ndarray
         ``(rows,)``: densities pooled into each row (members × time samples).
     histogram : numpy.ndarray or None
@@ -171,7 +171,7 @@ class Stats:
     mean: np.ndarray  # (rows, *cells) [1/volume]
     variance: np.ndarray  # (rows, *cells) [1/volume²]
     skewness: np.ndarray  # (rows, *cells), dimensionless
-    kurtosis: np.ndarray  # (rows, *cells), excess, dimensionless
+    kurtosis: np.ndarray  # (rows, *cells), not excess (3 for a Gaussian), dimensionless
     n_samples: np.ndarray  # (rows,) densities pooled into each row (members × time samples)
     histogram: np.ndarray | None = None  # particles per cell, bins hist_lo … (one particle wide)
     hist_lo: int | None = None  # the particle count of the first histogram bin
@@ -200,7 +200,7 @@ class Result:
     cell_volume : float
         V_c [L^d]: multiply a density by it for particles per cell.
     stats : Stats
-        Per-cell mean, variance, skewness, excess kurtosis at each row, ``(rows, *cells)``.
+        Per-cell mean, variance, skewness, kurtosis (3 for a Gaussian) at each row, ``(rows, *cells)``.
     diagnostics : dict of str to numpy.ndarray
         Per step, summed or taken over all members: ``time``, ``mass`` (particles),
         ``min_density``, ``negative_cells``, ``clamped_steps``, ``boundary_inflow``; the hybrid
