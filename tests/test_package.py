@@ -128,7 +128,7 @@ class Mapped:
         if name == "ti_dk.scenes":
             return importlib.util.spec_from_file_location(name, sys.argv[1] + "/__init__.py",
                                                           submodule_search_locations=[sys.argv[1]])
-sys.meta_path.append(Mapped)
+sys.meta_path.insert(0, Mapped)  # before an editable install's own finder
 import ti_dk
 from ti_dk.scene import schema
 print(schema.SCENE_DIR, ti_dk.available_scenes(), ti_dk.load_scene("packaged1d").grid.cells)
