@@ -17,6 +17,7 @@ and :func:`work_estimate`, all before Taichi starts.
 from __future__ import annotations
 
 import dataclasses
+import importlib.resources
 import inspect
 import math
 import re
@@ -31,7 +32,22 @@ from ..core.grid import Geometry
 from ..hybrid.regrid import RegridParams
 from ..pools import LAYOUTS as POOL_LAYOUTS
 
-SCENE_DIR = Path(__file__).resolve().parents[2] / "scenes"
+
+def scene_dir() -> Path:
+    """Where the scene files are: the package data ``ti_dk.scenes`` through :mod:`importlib.resources`.
+
+    An installed ti_dk (wheel or editable) has it: pyproject.toml installs the top-level
+    ``scenes/`` folder as that package. A source checkout imported without installing does not;
+    then its own ``scenes/`` folder, next to ``ti_dk/``.
+    """
+    try:
+        # the package's own name: benchmarks/bench_ab.py imports copies of it under other names
+        return Path(str(importlib.resources.files(__name__.split(".")[0] + ".scenes")))
+    except ModuleNotFoundError:
+        return Path(__file__).resolve().parents[2] / "scenes"
+
+
+SCENE_DIR = scene_dir()
 METHODS = ("fv", "gaussian", "particle", "hybrid")
 SPDES = ("fv", "gaussian")  # the SPDE a hybrid run keeps on the whole grid
 GHOST_PROFILES = ("mean", "linear", "uniform")  # how sampled particles lie in their cell (see HybridSolver)
@@ -344,7 +360,7 @@ def _default(name: str) -> Any:
 
 
 def keys_help() -> str:
-    """Every scene key, table by table: name, doc, what it takes, default (``--help`` and the README)."""
+    """Every scene key, table by table: name, doc, what it takes, default (``--help`` and docs/scenes.md)."""
     tables: dict[str, list[str]] = {}
     for name, k in KEYS.items():
         sec = WHERE[name][0] if name in WHERE else "init"
