@@ -130,7 +130,10 @@ class Controller:
         self.rf = RunFile.of(outputs, scene) if outputs else None  # statistics and diagnostics
         frames = outputs is not None and (opts.frames is not False or opts.movie)
         steps = _frame_steps(scene, frames, opts.movie)
-        self.statistics = Statistics(scene, solver, self.rf, prog, steps if frames and scene.grid.dim == 1 else ())
+        sampled = scene.method.ensemble > 1 or scene.stats.t_equil is not None  # rows with a variance
+        spectrum = outputs.structure_factor if frames and scene.stats.structure_factor and sampled else None
+        self.statistics = Statistics(scene, solver, self.rf, prog, steps if frames and scene.grid.dim == 1 else (),
+                                     spectrum)
         self.diagnostics = Diagnostics(self.rf, prog.diag, self.statistics)
         writer = _frame_writer(outputs, scene, other) if frames else None
         self.frames = Frames(scene, solver, other, writer, steps, prog.frames, self.statistics)
@@ -145,7 +148,8 @@ class Controller:
     def _written(self) -> dict[str, Path]:
         where = {"statistics and diagnostics": self.rf and self.rf.path,
                  "frames": self.frames.writer and self.frames.writer.dir,
-                 "openPMD snapshots": self.snapshots.directory, "checkpoint": self.checkpoints.path}
+                 "openPMD snapshots": self.snapshots.directory, "checkpoint": self.checkpoints.path,
+                 "structure factor": self.statistics.spectrum_png}
         return {what: path for what, path in where.items() if path}
 
     def advance(self, n: int) -> None:
@@ -252,7 +256,7 @@ def _frame_steps(scene: Scene, frames: bool, movie: bool) -> set[int]:
 
 def _frame_writer(outputs: Outputs, scene: Scene, other: Solver | None):
     """The frame writer of this scene: moment profiles in 1D, density panels in 2D and 3D."""
-    from .render import FrameWriter
+    from ..output.render import FrameWriter
 
     return FrameWriter(outputs.frames, _renderer(scene, scene.initial_ppc, other))
 
@@ -320,10 +324,10 @@ def _close_quietly(rf: RunFile, wall: float, error: str) -> None:
 def _renderer(scene: Scene, ppc: np.ndarray, other: Solver | None):
     """What draws this scene's frames: moment profiles in 1D, density panels in 2D and 3D."""
     if scene.grid.dim == 1:
-        from .profiles import ProfileRenderer
+        from ..output.profiles import ProfileRenderer
 
         return ProfileRenderer(scene)
-    from .render import Renderer, colour_max
+    from ..output.render import Renderer, colour_max
 
     methods = scene.method.name + (f" (left) and {scene.method.compare} (right)" if other and scene.grid.dim == 2 else
                               f" (top) and {scene.method.compare} (bottom)" if other else "")
