@@ -62,14 +62,12 @@ class Statistics:
     """Statistics rows over the ensemble at ``scene.output_steps`` (and at ``extra_steps``, rows only
     drawn by 1D frames); a stationary scene pools every ``sample_every``-th step after ``t_equil``
     into one row at the end. With ``stats.structure_factor`` the rows carry S(k)
-    (:mod:`ti_dk.core.spectra`), drawn at the end into ``spectrum_png`` (None: not drawn)."""
+    (:mod:`ti_dk.core.spectra`)."""
 
     part = "statistics"
 
-    def __init__(self, scene: Scene, solver: Solver, rf: RunFile | None, prog: Progress, extra_steps=(),
-                 spectrum_png: Path | None = None):
+    def __init__(self, scene: Scene, solver: Solver, rf: RunFile | None, prog: Progress, extra_steps=()):
         self.scene, self.solver, self.rf = scene, solver, rf
-        self.spectrum_png = spectrum_png  # where the last row's S(k) is drawn, or None
         self.rows, self.times = prog.rows, prog.times  # the rows at output steps so far, and their times
         self.outputs = set(scene.output_steps)  # steps whose row is kept and written
         self.extra = set(extra_steps)  # steps whose row only draws a frame
@@ -107,10 +105,6 @@ class Statistics:
             self.times.append(n * sc.dt)
             if self.rf:
                 self.rf.write_row(n * sc.dt, row)
-        if row is not None and n == sc.n_steps and self.spectrum_png and "structure_factor" in row:
-            from ..output.spectra import draw_structure_factor
-
-            draw_structure_factor(self.spectrum_png, sc, row, self.row_steps(n))
 
     def _cell_stats(self) -> CellStats:
         sc = self.scene
