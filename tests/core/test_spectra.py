@@ -104,3 +104,21 @@ def test_spde_matches_the_linear_scheme(method, ppc, cells, lengths, C, members)
     with pytest.raises(AssertionError):
         _check(_z(S, spectra.half(theory.linear_structure_factor(cells, tuple(scene.dt / h**2 for h in dx))),
                   cells, members))
+
+
+def test_a_pooled_row_matches_the_mean_over_its_steps():
+    """A stationary scene's one row pools every sampled step after t_equil: its exact answer is the
+    linear scheme's mean over those steps (here still relaxing at low k, so the stationary answer
+    does not fit). Time samples of a member are positively correlated, so the error of a single
+    time's estimate (members only) bounds the pooled one's: a conservative SE."""
+    cells, C, members = (32,), 0.4, 400
+    dt = C / cells[0] ** 2
+    scene = load_scene("equilibrium1d", method="gaussian", cells=list(cells), C=C, ensemble=members, histogram=None,
+                       t_end=100 * dt, t_equil=10 * dt, sample_every=5, structure_factor=True)
+    res = run(scene)
+    steps = range(10, 101, 5)
+    assert res.stats.n_samples[-1] == members * len(steps)
+    S = res.stats.structure_factor[-1]
+    _check(_z(S, spectra.half(theory.linear_structure_factor(cells, (C,), steps)), cells, members))
+    with pytest.raises(AssertionError):
+        _check(_z(S, spectra.half(theory.linear_structure_factor(cells, (C,))), cells, members))
