@@ -175,6 +175,7 @@ class Stats:
     n_samples: np.ndarray  # (rows,) densities pooled into each row (members × time samples)
     histogram: np.ndarray | None = None  # particles per cell, bins hist_lo … (one particle wide)
     hist_lo: int | None = None  # the particle count of the first histogram bin
+    structure_factor: np.ndarray | None = None  # (rows, *half cells) S(k), dimensionless (ti_dk.core.spectra)
 
 
 def stats_of(rows: list[dict], hist: tuple[int, int] | None) -> Stats:
@@ -182,7 +183,7 @@ def stats_of(rows: list[dict], hist: tuple[int, int] | None) -> Stats:
     stack = {k: np.stack([r[k] for r in rows]) for k in rows[0] if not k.startswith("acc_")}
     return Stats(mean=stack["mean"], variance=stack["variance"], skewness=stack["skewness"],
                  kurtosis=stack["kurtosis"], n_samples=stack["n_samples"], histogram=stack.get("histogram"),
-                 hist_lo=hist[0] if hist else None)
+                 hist_lo=hist[0] if hist else None, structure_factor=stack.get("structure_factor"))
 
 
 @dataclass(frozen=True)

@@ -89,6 +89,7 @@ class Outputs:
     chunks = property(lambda self: self.out / f"{self.stem}_chunks")
     lock = property(lambda self: self.out / f"{self.stem}.lock")
     movie = property(lambda self: self.out / f"{self.stem}.mp4")
+    structure_factor = property(lambda self: self.frames / "structure_factor.png")  # S(k) drawn, beside the frames
 
     @contextmanager
     def claim(self, overwrite: bool = False, fresh: bool = True):
@@ -133,7 +134,8 @@ class Outputs:
 
     def clear_pictures(self) -> None:
         """Remove the frames, movie and snapshots of an earlier run on this output."""
-        for folder, patterns in ((self.frames, ("frame_*.png",)), (self.snapshots, ("data*.h5",))):
+        for folder, patterns in ((self.frames, ("frame_*.png", self.structure_factor.name)),
+                                 (self.snapshots, ("data*.h5",))):
             for pattern in patterns:
                 for p in folder.glob(pattern):
                     p.unlink(missing_ok=True)
@@ -168,7 +170,9 @@ class RunFile:
     ``wall_time``, ``timing``; ``/stats/time``, ``/stats/n_samples`` and
     ``/stats/{mean,variance,skewness,kurtosis}`` shaped ``(n_rows, *cells)``, optional
     ``/stats/histogram`` ``(n_rows, *cells, bins)`` with attribute ``lo`` and
-    ``/stats/histogram_outside``; ``/diagnostics/{time,mass,min_density,negative_cells,
+    ``/stats/histogram_outside``, optional ``/stats/structure_factor`` ``(n_rows, *half cells)``
+    (:mod:`ti_dk.core.spectra`; attributes ``definition``, ``k0``, ``k1``, …: the wave numbers per
+    axis); ``/diagnostics/{time,mass,min_density,negative_cells,
     boundary_inflow,clamped_steps}`` one entry per step (hybrid: also ``particles`` and
     ``regrid_change``; a compared method: ``compare_{mass,min_density,negative_cells}``);
     ``/regrid/{step,boxes,covered_cells,efficiency,created,removed,on_demand}`` one entry per
@@ -217,8 +221,20 @@ class RunFile:
             hist = self._grow(st, "histogram", (*scene.grid.cells, histogram_bins), np.int64)
             hist.attrs["lo"] = scene.stats.histogram[0]
             self._grow(st, "histogram_outside", scene.grid.cells, np.int64)
+        if scene.stats.structure_factor and len(self.keys) > 1:
+            self._structure_factor(st, scene.grid)
         self.diag = self.h5.create_group("diagnostics")
         self.h5.flush()
+
+    def _structure_factor(self, st, grid) -> None:
+        """The dataset of S(k), with its definition and wave numbers as attributes."""
+        from ..core import spectra
+
+        ds = self._grow(st, "structure_factor", spectra.half_shape(grid.cells), np.float64)
+        ds.attrs["definition"] = ("S(k) = <|sum_j dN_j exp(-i k.x_j)|^2> / <N_total>, dN_j = N_j - <N_j> the "
+                                  "particle count fluctuation of cell j; numpy rfftn half grid, k_a = 2 pi m_a / L_a")
+        for a, k in enumerate(spectra.wavenumbers(grid.cells, grid.lengths)):
+            ds.attrs[f"k{a}"] = k
 
     @classmethod
     def of(cls, outputs: Outputs, scene) -> "RunFile":

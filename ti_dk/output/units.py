@@ -18,6 +18,7 @@ UNITS = {
     "stats/kurtosis": "dimensionless, non-excess: k4 / k2^2 + 3 (3 for a Gaussian)",
     "stats/histogram": "samples per bin; bin k: lo + k particles per cell (attribute lo)",
     "stats/histogram_outside": "samples outside the histogram's bins",
+    "stats/structure_factor": "dimensionless: <|sum_j dN_j e^(-ik.x_j)|^2> / <N_total> (attribute definition)",
     "diagnostics/time": "L^2/2D (the end of the step)",
     "diagnostics/mass": "particles" + SUM,
     "diagnostics/min_density": "particles per unit volume (L^-d); minimum over members and cells",

@@ -40,7 +40,8 @@ def _ppc_max(scene: Scene) -> float:
 
 
 def memory_estimate(scene: Scene) -> dict[str, float]:
-    """Bytes a run needs, by part: solver fields, particles, host copies, statistics, histogram.
+    """Bytes a run needs, by part: solver fields, particles, host copies, statistics, histogram,
+    structure factor.
 
     Rough (within a factor of about 2) but computed before anything is allocated; the hybrid's
     particle pool grows with its region and is counted for the threshold density everywhere.
@@ -68,6 +69,8 @@ def memory_estimate(scene: Scene) -> dict[str, float]:
     est["statistics"] = (rows + 1) * cells * 12 * 8  # moments and accumulators per row
     if scene.stats.histogram:
         est["histogram"] = (rows + 1) * cells * (scene.stats.histogram[1] - scene.stats.histogram[0] + 1) * 8
+    if scene.stats.structure_factor:  # the counts' transforms and their moments on the host; accumulators per row
+        est["structure factor"] = 5 * mc * 8 + (rows + 1) * cells * 6 * 8
     return est
 
 

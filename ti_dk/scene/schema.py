@@ -227,6 +227,8 @@ class StatsKeys:
     sample_every: int = key("int", "stationary runs: pool every k-th step", 1, lo=1)
     histogram: tuple[int, int] | None = key("special", "per-cell histogram of particles per cell, one-particle bins",
                                             None, form="[lo, hi], whole numbers with lo < hi")
+    structure_factor: bool = key("bool", "static structure factor S(k) of the count fluctuations per row "
+                                 "(/stats/structure_factor, a PNG beside the frames)", False)
 
 
 @dataclass(frozen=True)
