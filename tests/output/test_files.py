@@ -70,7 +70,7 @@ def test_snapshots_pass_the_openpmd_validator(tmp_path):
 
 def test_outputs_stay_inside_out_and_lock_one_run(tmp_path):
     from ti_dk import ConfigError
-    from ti_dk.output.files import Outputs
+    from ti_dk.output.claim import Outputs
 
     scene = load_scene("void1d")
     o = Outputs.of(tmp_path, scene)
@@ -85,7 +85,8 @@ def test_outputs_stay_inside_out_and_lock_one_run(tmp_path):
 
 
 def test_chunk_and_frame_names_and_openpmd_ids(tmp_path):
-    from ti_dk.output.files import Outputs, frame_file, pack_ids
+    from ti_dk.output.claim import Outputs
+    from ti_dk.output.files import frame_file, pack_ids
 
     o = Outputs.of(tmp_path, load_scene("void1d"))
     assert o.chunk(12).parent == o.chunks and o.chunk(12).name == "chunk_000000012.h5"
@@ -99,7 +100,8 @@ def test_chunk_and_frame_names_and_openpmd_ids(tmp_path):
 
 
 def test_run_file_rows_and_attributes(tmp_path):
-    from ti_dk.output.files import Outputs, RunFile
+    from ti_dk.output.claim import Outputs
+    from ti_dk.output.files import RunFile
 
     scene = load_scene("void1d", ensemble=2, cells=[4], histogram=[0, 3])
     rf = RunFile.of(Outputs.of(tmp_path, scene), scene)
@@ -107,6 +109,6 @@ def test_run_file_rows_and_attributes(tmp_path):
     rf.write_rows([0.0, 0.5], [row, row])
     rf.annotate("timing", {"io": 1.0})
     rf.close(1.0)
-    with h5py.File(rf.path) as f:
+    with h5py.File(rf.at) as f:
         assert f["stats/time"][:].tolist() == [0.0, 0.5] and f["stats/histogram"].shape == (2, 4, 4)
         assert json.loads(f.attrs["timing"]) == {"io": 1.0} and f.attrs["complete"]

@@ -11,11 +11,12 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from .checkpoint import Progress, read_checkpoint
+from .checkpoint import Progress, check_checkpoint_file, read_checkpoint
 from ..scene.load import check_options
 from ..scene.schema import Scene
 from .handlers import Checkpoints, Clock, Diagnostics, Frames, Snapshots, Statistics
-from ..output.files import Outputs, RunFile, output_error
+from ..output.claim import Outputs
+from ..output.files import RunFile, is_complete, output_error
 from ..methods.registry import make_solver  # also where tests and benchmarks build a solver
 from .runtime import Result, SimulationError, check_stop, init, initialized, stats_of
 from ..methods.solver import Solver
@@ -63,9 +64,12 @@ def run(scene: Scene, out: str | Path | None = None, progress: bool | None = Non
     check_options(scene, out=out, threads=threads, checkpoint_every=checkpoint_every, restart=restart, movie=movie)
     opts = RunOptions(progress, arch, threads, frames, movie, snapshots, checkpoint_every,
                       Path(restart) if restart is not None else None, member0)
+    if restart is not None:  # a refused restart writes nothing, not even --out or its lock
+        check_checkpoint_file(Path(restart), scene)
     if out is None:
         return _run(scene, None, opts)
     outputs = Outputs.of(out, scene)
+    check_stop()
     with outputs.claim(overwrite, fresh=restart is None):
         try:
             return _run(scene, outputs, opts)
@@ -81,7 +85,8 @@ def _run(scene: Scene, outputs: Outputs | None, opts: RunOptions) -> Result:
     wall0 = time.perf_counter()
     solver, other = _solvers(scene, opts.member0)
     prog = read_checkpoint(opts.restart, scene, solver, other) if opts.restart is not None else Progress()
-    ctl = Controller(scene, solver, other, outputs, prog, opts)
+    check_stop()
+    ctl = Controller(scene, solver, other, outputs, prog, opts, wall0)
     ctl.clock.add("setup", wall0)  # solvers built and initialised (their kernels compiled), checkpoint read
     show = sys.stderr.isatty() if opts.progress is None else opts.progress
     try:
@@ -89,7 +94,7 @@ def _run(scene: Scene, outputs: Outputs | None, opts: RunOptions) -> Result:
             ctl.record(0)
         with StepBar(scene, prog.step, show, ctl.clock) as bar:
             for n in range(prog.step, scene.n_steps):
-                check_stop(f" at step {n} of {scene.n_steps}", ctl.rf, ctl.checkpoints.latest)
+                check_stop(f" at step {n} of {scene.n_steps}", ctl.stopped_file, ctl.checkpoints.latest)
                 bar.starting()
                 ctl.advance(n)
                 ctl.record(n + 1)
@@ -98,13 +103,13 @@ def _run(scene: Scene, outputs: Outputs | None, opts: RunOptions) -> Result:
             ctl.make_movie()
     except OverflowError as exc:
         if ctl.rf:
-            ctl.rf.close(time.perf_counter() - wall0, error=str(exc))
+            ctl.rf.close(ctl.wall(), error=str(exc))
         raise SimulationError(str(exc)) from None
     except BaseException as exc:
         if ctl.rf:
-            _close_quietly(ctl.rf, time.perf_counter() - wall0, f"{type(exc).__name__}: {exc}")
+            _close_quietly(ctl, str(exc) if isinstance(exc, SimulationError) else f"{type(exc).__name__}: {exc}")
         raise
-    return ctl.finish(time.perf_counter() - wall0)
+    return ctl.finish(ctl.wall())
 
 
 def _solvers(scene: Scene, member0: int) -> tuple[Solver, Solver | None]:
@@ -123,9 +128,10 @@ class Controller:
     output handlers, asked in order after every step whether they are due."""
 
     def __init__(self, scene: Scene, solver: Solver, other: Solver | None, outputs: Outputs | None,
-                 prog: Progress, opts: RunOptions):
+                 prog: Progress, opts: RunOptions, wall0: float):
         self.scene, self.solver, self.other = scene, solver, other
         self.outputs = outputs  # every path the run writes, or None
+        self.wall0 = wall0 - prog.wall  # when the run began (perf_counter), a restarted one's earlier part included
         self.clock = Clock(prog.timing, solver)  # seconds per part of the run
         self.rf = RunFile.of(outputs, scene) if outputs else None  # statistics and diagnostics
         frames = outputs is not None and (opts.frames is not False or opts.movie)
@@ -135,18 +141,26 @@ class Controller:
         writer = _frame_writer(outputs, scene, other) if frames else None
         self.frames = Frames(scene, solver, other, writer, steps, prog.frames, self.statistics)
         draw_snapshots = outputs is not None and scene.grid.dim >= 2 and opts.snapshots is not False
-        self.snapshots = Snapshots(scene, solver, outputs.snapshots if draw_snapshots else None)
+        self.snapshots = Snapshots(scene, solver, outputs.staged(outputs.snapshots) if draw_snapshots else None)
         every = opts.checkpoint_every
         self.checkpoints = Checkpoints(scene, (solver, other), outputs.checkpoint if outputs and every else None,
                                        every, self.progress, self.diagnostics, opts.restart)
         self.handlers = (self.statistics, self.frames, self.snapshots, self.diagnostics, self.checkpoints)
         self.written = self._written()  # every file or folder written, by what it holds
+        # the file a stopped run leaves marked incomplete: not when it replaces a complete result, which stays
+        self.stopped_file = self.rf.path if self.rf and not is_complete(self.rf.path) else None
 
     def _written(self) -> dict[str, Path]:
+        """Every file or folder the run writes, by what it holds, where it lies once the run ends."""
+        o = self.outputs
         where = {"statistics and diagnostics": self.rf and self.rf.path,
-                 "frames": self.frames.writer and self.frames.writer.dir,
-                 "openPMD snapshots": self.snapshots.directory, "checkpoint": self.checkpoints.path}
+                 "frames": self.frames.writer and o.frames,
+                 "openPMD snapshots": self.snapshots.directory and o.snapshots, "checkpoint": self.checkpoints.path}
         return {what: path for what, path in where.items() if path}
+
+    def wall(self) -> float:
+        """Seconds the run has taken, a restarted run's earlier part included."""
+        return time.perf_counter() - self.wall0
 
     def advance(self, n: int) -> None:
         """Step ``n`` → ``n + 1`` of both solvers; their diagnostics kept; a NaN mass refused."""
@@ -176,13 +190,14 @@ class Controller:
         """What the run has produced by step ``n`` (a checkpoint's content, with the solver states)."""
         st = self.statistics
         return Progress(step=n, rows=st.rows, times=st.times, diag=self.diagnostics.diag, frames=self.frames.log,
-                        pooled=st.pooled_state(), timing=self.clock.parts)
+                        pooled=st.pooled_state(), timing=self.clock.parts, wall=self.wall())
 
     def make_movie(self) -> None:
         """The MP4 of every frame."""
         if self.frames.writer:
             t0 = time.perf_counter()
-            self.written["movie"] = self.frames.writer.movie(self.outputs.movie)
+            self.frames.writer.movie(self.outputs.staged(self.outputs.movie))
+            self.written["movie"] = self.outputs.movie
             self.clock.add("render", t0)
 
     def finish(self, wall: float) -> Result:
@@ -200,7 +215,8 @@ class Controller:
                       stats=stats_of(st.rows, sc.stats.histogram),
                       diagnostics={k: np.asarray(v) for k, v in self.diagnostics.diag.items()},
                       final_density=self.solver.density(), wall_time=wall, path=self.rf.path if self.rf else None,
-                      regrids=regrids, timing=timing, frames=self.frames.files(), rows=st.rows, written=self.written)
+                      regrids=regrids, timing=timing, rows=st.rows, written=self.written,
+                      frames=[self.outputs.frames / p.name for p in self.frames.files()])
 
 
 class StepBar:
@@ -252,9 +268,9 @@ def _frame_steps(scene: Scene, frames: bool, movie: bool) -> set[int]:
 
 def _frame_writer(outputs: Outputs, scene: Scene, other: Solver | None):
     """The frame writer of this scene: moment profiles in 1D, density panels in 2D and 3D."""
-    from .render import FrameWriter
+    from ..output.render import FrameWriter
 
-    return FrameWriter(outputs.frames, _renderer(scene, scene.initial_ppc, other))
+    return FrameWriter(outputs.staged(outputs.frames), _renderer(scene, scene.initial_ppc, other))
 
 
 def summary(result: Result) -> str:
@@ -308,11 +324,15 @@ def summary(result: Result) -> str:
     return "\n".join(lines)
 
 
-def _close_quietly(rf: RunFile, wall: float, error: str) -> None:
-    """Mark ``rf`` incomplete on the way out of a failed run; a second failure (the disk still full)
-    must not hide the first."""
+def _close_quietly(ctl: Controller, error: str) -> None:
+    """Mark the run file incomplete on the way out of a failed or stopped run, its diagnostics written
+    up to the last step done; a second failure (the disk still full) must not hide the first."""
     try:
-        rf.close(wall, error=error)
+        ctl.diagnostics.flush(force=True)
+    except (OSError, RuntimeError, ValueError):
+        pass
+    try:
+        ctl.rf.close(ctl.wall(), error=error)
     except OSError:
         pass
 
@@ -320,10 +340,10 @@ def _close_quietly(rf: RunFile, wall: float, error: str) -> None:
 def _renderer(scene: Scene, ppc: np.ndarray, other: Solver | None):
     """What draws this scene's frames: moment profiles in 1D, density panels in 2D and 3D."""
     if scene.grid.dim == 1:
-        from .profiles import ProfileRenderer
+        from ..output.profiles import ProfileRenderer
 
         return ProfileRenderer(scene)
-    from .render import Renderer, colour_max
+    from ..output.render import Renderer, colour_max
 
     methods = scene.method.name + (f" (left) and {scene.method.compare} (right)" if other and scene.grid.dim == 2 else
                               f" (top) and {scene.method.compare} (bottom)" if other else "")

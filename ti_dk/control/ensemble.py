@@ -21,7 +21,8 @@ from tqdm import tqdm
 from . import controller, runtime
 from ..scene.load import check_options
 from ..scene.schema import ConfigError, Scene
-from ..output.files import (Outputs, RunFile, atomic_h5, output_error, read_group, read_rows, same_scene, scene_json, write_group,
+from ..output.claim import Outputs
+from ..output.files import (RunFile, atomic_h5, output_error, read_group, read_rows, same_scene, scene_json, write_group,
                  write_rows)
 from ..core.stats import CellStats
 

@@ -53,7 +53,7 @@ class Clock:
         if self.solver.timing:  # its own parts replace "solver"
             timing.pop("solver", None)
         timing = {k: timing[k] for k in TIMING_ORDER if k in timing}
-        timing["other"] = wall - sum(timing.values())
+        timing["other"] = max(0.0, wall - sum(timing.values()))  # wall: a restarted run's earlier part included
         timing["total"] = wall
         return timing
 
@@ -183,7 +183,7 @@ class Frames:
 
     def panels(self) -> list:
         """Member 0 of each method as a frame panel, in particles per cell."""
-        from .render import Panel
+        from ..output.render import Panel
 
         sc, boxes = self.scene, self.solver.boxes
         panels = [Panel(sc.method.name, self.solver.density()[0] * sc.grid.cell_volume, boxes[0] if boxes else None)]

@@ -128,17 +128,16 @@ def stop_on_signals():
         _STOP["signal"] = None
 
 
-def check_stop(where: str = " before the first step", rf=None, checkpoint: Path | None = None) -> None:
-    """Raise :class:`Stopped` if a signal arrived: ``rf`` closed and marked incomplete with the reason,
-    and the message names the latest checkpoint only if there is one."""
+def check_stop(where: str = " before the first step", run_file: Path | None = None,
+               checkpoint: Path | None = None) -> None:
+    """Raise :class:`Stopped` if a signal arrived; the message names the run file, which the caller
+    closes marked incomplete, and the latest checkpoint, only if there is one."""
     signum = _STOP["signal"]
     if signum is None:
         return
     name = signal.Signals(signum).name
-    if rf is not None:
-        rf.close(error=f"stopped by {name}{where}")
     msg = f"stopped by {name}{where}"
-    msg += f"; {rf.path} is marked incomplete" if rf is not None else ""
+    msg += f"; {run_file} is marked incomplete" if run_file is not None else ""
     msg += f"; resume with --restart {checkpoint}" if checkpoint is not None else ""
     raise Stopped(msg, 128 + signum)
 
