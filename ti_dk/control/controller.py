@@ -12,6 +12,7 @@ import numpy as np
 from tqdm import tqdm
 
 from .checkpoint import Progress, check_checkpoint_file, read_checkpoint
+from ..scene.estimates import work_estimate
 from ..scene.load import check_options
 from ..scene.schema import Scene
 from .handlers import Checkpoints, Clock, Diagnostics, Frames, Snapshots, Statistics
@@ -92,7 +93,7 @@ def _run(scene: Scene, outputs: Outputs | None, opts: RunOptions) -> Result:
     try:
         if opts.restart is None:
             ctl.record(0)
-        with StepBar(scene, prog.step, show, ctl.clock) as bar:
+        with StepBar(scene, prog.step, show, ctl.clock, work_estimate(scene)[1]) as bar:
             for n in range(prog.step, scene.n_steps):
                 check_stop(f" at step {n} of {scene.n_steps}", ctl.stopped_file, ctl.checkpoints.latest)
                 bar.starting()
@@ -219,12 +220,18 @@ class Controller:
                       frames=[self.outputs.frames / p.name for p in self.frames.files()])
 
 
+OVERDUE_SECONDS, OVERDUE_FACTOR = 60.0, 3.0  # a run past both says how far it is
+
+
 class StepBar:
     """The progress bar of the steps; the first step, which compiles the step kernels, is timed as
     ``compile`` and left out of the rate and the ETA."""
 
-    def __init__(self, scene: Scene, start: int, show: bool, clock: Clock):
+    def __init__(self, scene: Scene, start: int, show: bool, clock: Clock, estimate: float = math.inf):
         self.label = f"{scene.name}/{scene.method.name}"
+        self.start, self.total = start, scene.n_steps
+        self.t0 = time.perf_counter()  # when this part of the run began
+        self.overdue = max(OVERDUE_SECONDS, OVERDUE_FACTOR * estimate)  # said once when passed, from t0
         self.bar = tqdm(total=scene.n_steps, initial=start, disable=not show, unit="step",
                         desc=f"{self.label}: compiling", file=sys.stderr, mininterval=0.5)
         self.clock = clock  # where the first step's time moves to "compile"
@@ -245,9 +252,16 @@ class StepBar:
             self.before = self.clock.all()
 
     def stepped(self, step: int) -> None:
-        """``step`` steps are done (the handlers included)."""
+        """``step`` steps are done (the handlers included); a run far past its estimate says so once."""
         if not self.first:
             self.bar.update()
+            elapsed = time.perf_counter() - self.t0
+            if elapsed > self.overdue:
+                self.overdue = math.inf
+                left = elapsed / (step - self.start) * (self.total - step)
+                self.bar.write(f"ti_dk: note: {elapsed / 60:.3g} min so far, more than {OVERDUE_FACTOR:g}x the "
+                               f"estimate; {step:,} of {self.total:,} steps done, about {left / 60:.3g} min to go",
+                               sys.stderr)
             return
         self.first = False
         self.clock.compiled(self.before, self.t_first)

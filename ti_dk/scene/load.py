@@ -48,10 +48,10 @@ def _read_toml(name_or_path: str | Path) -> tuple[str, dict[str, Any]]:
         raw = tomllib.loads(path.read_bytes().decode("utf-8"))
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{path}: not valid TOML ({exc}): fix the file") from None
-    except (ValueError, RecursionError) as exc:  # a number of thousands of digits, lists thousands deep
-        raise ConfigError(f"{path}: a value is out of reach ({_beyond(exc)}): fix the file") from None
     except UnicodeDecodeError:
         raise ConfigError(f"{path}: not UTF-8 text: give a TOML scene file") from None
+    except (ValueError, RecursionError) as exc:  # a number of thousands of digits, lists thousands deep
+        raise ConfigError(f"{path}: a value is out of reach ({_beyond(exc)}): fix the file") from None
     except IsADirectoryError:
         raise ConfigError(f"{path} is a directory: give a .toml scene file") from None
     except OSError as exc:
