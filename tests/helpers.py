@@ -25,9 +25,15 @@ def as_counts(stats, row, vol):
             "skewness": stats.skewness[row], "kurtosis": stats.kurtosis[row]}
 
 
+def user_env() -> dict:
+    """The environment of a command as a user runs it, importing the ti_dk under test (this tree's,
+    not whichever one is installed), from any folder."""
+    return dict(os.environ, PYTHONWARNINGS="ignore", PYTHONPATH=str(ROOT))
+
+
 def command(module, *args, cwd=ROOT):
     """``python -m <module> <args>`` as a user runs it (from the repository root by default)."""
-    env = dict(os.environ, PYTHONWARNINGS="ignore")
+    env = user_env()
     return subprocess.run([sys.executable, "-m", module, *args], cwd=cwd, env=env, capture_output=True, text=True,
                           timeout=600)
 

@@ -38,9 +38,9 @@ def available_scenes() -> list[str]:
 
 def _read_toml(name_or_path: str | Path) -> tuple[str, dict[str, Any]]:
     path = Path(name_or_path)
-    if path.suffix != ".toml" or not path.exists():
+    if path.suffix != ".toml" or not _exists(path):
         path = SCENE_DIR / f"{name_or_path}.toml"
-    if not path.exists():
+    if not _exists(path):
         raise ConfigError(
             f"unknown scene '{name_or_path}': give a .toml path or one of {', '.join(available_scenes())}"
         )
@@ -57,6 +57,14 @@ def _read_toml(name_or_path: str | Path) -> tuple[str, dict[str, Any]]:
     except OSError as exc:
         raise ConfigError(f"{path}: cannot be read ({exc.strerror}): check the path and its permissions") from None
     return path.stem, raw
+
+
+def _exists(path: Path) -> bool:
+    """Whether ``path`` exists; False for a name the file system cannot even look up (too long)."""
+    try:
+        return path.exists()
+    except OSError:
+        return False
 
 
 def _flatten(raw: dict[str, Any]) -> dict[str, Any]:
@@ -313,13 +321,17 @@ def check_options(scene: Scene, *, out: str | Path | None = None, executor: str 
         for flag, given in (("--workers", workers), ("--chunk", chunk), ("--scheduler", scheduler)):
             if given is not None:
                 raise ConfigError(f"{flag} is for --executor dask: drop it or add --executor dask")
-    try:
-        if restart is not None and not Path(restart).is_file():
-            raise ConfigError(f"--restart {restart}: no such checkpoint file")
-        if out is not None:
-            _check_out(out)
-    except OSError as exc:  # a name longer than the file system takes, a loop of links
-        raise ConfigError(f"{'--out' if out is not None else '--restart'}: {exc.strerror}; give a shorter, plain path")
+    for flag, path, check in (("--restart", restart, _check_restart), ("--out", out, _check_out)):
+        try:
+            if path is not None:
+                check(path)
+        except OSError as exc:  # a name longer than the file system takes, a loop of links
+            raise ConfigError(f"{flag}: {exc.strerror}; give a shorter, plain path") from None
+
+
+def _check_restart(restart: str | Path) -> None:
+    if not Path(restart).is_file():
+        raise ConfigError(f"--restart {restart}: no such checkpoint file")
 
 
 def _check_out(out: str | Path) -> None:
