@@ -495,6 +495,57 @@ def test_a_read_only_output_is_refused_before_the_run(tmp_path, mount, capsys):
     assert code == 2 and err.count("\n") == 1 and "is not writable" in err, err
 
 
+def _tree(folder):
+    """Every file under ``folder`` (hidden ones included) with the SHA-256 of its bytes."""
+    return {str(p.relative_to(folder)): hashlib.sha256(p.read_bytes()).hexdigest()
+            for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+SMALL = ["ellipse2d", "--method", "fv", "--set", "compare=none", "--t-end", "0.002", "--set", "output_times=[0,0.001]"]
+
+
+def test_a_failed_overwrite_on_a_full_or_read_only_disk_keeps_the_old_result(tmp_path, mount):
+    disk = mount("size=4m")
+    out = disk / "out"
+    r = cli(*SMALL, "--set", "cells=[16,16]", "--out", str(out), cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    before = _tree(out)
+    assert len(before) >= 7  # run file, frames, snapshots
+    subprocess.run(["dd", "if=/dev/zero", f"of={disk / 'filler'}", "bs=64k"], capture_output=True)  # to ENOSPC
+    r = cli(*SMALL, "--set", "cells=[24,24]", "--overwrite", "--out", str(out), cwd=tmp_path)
+    assert r.returncode == 1 and r.stderr.count("\n") == 1 and "the disk is full" in r.stderr, r.stderr
+    assert "Traceback" not in r.stderr and _tree(out) == before  # byte-identical, no lock, no stage
+    (disk / "filler").unlink()
+    assert subprocess.run(["mount", "-o", "remount,ro", str(disk)]).returncode == 0
+    r = cli(*SMALL, "--set", "cells=[24,24]", "--overwrite", "--out", str(out), cwd=tmp_path)
+    assert r.returncode == 2 and r.stderr.count("\n") == 1 and "not writable" in r.stderr, r.stderr
+    assert _tree(out) == before
+    assert subprocess.run(["mount", "-o", "remount,rw", str(disk)]).returncode == 0
+    r = cli(*SMALL, "--set", "cells=[24,24]", "--overwrite", "--out", str(out), cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    after = _tree(out)
+    assert not set(after.items()) & set(before.items()) and {k.split("/")[0] for k in after} == \
+        {k.split("/")[0] for k in before}  # every part replaced, nothing else left
+    with h5py.File(out / "ellipse2d_fv.h5") as f:
+        assert f.attrs["complete"] and f["stats/mean"].shape[1:] == (24, 24)
+
+
+def test_a_refused_restart_names_each_setting_and_writes_nothing(tmp_path):
+    first = tmp_path / "first"
+    r = cli("void1d", "--ensemble", "2", "--t-end", "0.001", "--checkpoint-every", "40", "--out", str(first),
+            cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    assert "output_times" in r.stderr and "lie past t_end = 0.001" in r.stderr  # said, once, not an error
+    assert r.stderr.count("\n") == 1 and r.stderr.startswith("ti_dk: warning: "), r.stderr
+    ckpt = first / "void1d_fv_checkpoint.h5"
+    second = tmp_path / "second"
+    r = cli("void1d", "--ensemble", "3", "--t-end", "0.001", "--set", "C=0.1", "--restart", str(ckpt),
+            "--out", str(second), cwd=tmp_path)
+    assert r.returncode == 2 and r.stderr.count("\n") == 1, r.stderr
+    assert "method.ensemble: checkpoint 2, now 3" in r.stderr and "time.C: checkpoint" in r.stderr, r.stderr
+    assert not second.exists()  # neither --out nor a lock
+
+
 def test_long_runs_say_how_long_before_they_start(capsys):
     from ti_dk import load_scene
     from ti_dk.scene.cli import _announce

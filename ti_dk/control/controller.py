@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from .checkpoint import Progress, check_checkpoint_file, read_checkpoint
+from .checkpoint import Progress, read_checkpoint
 from ..scene.estimates import work_estimate
 from ..scene.load import check_options
 from ..scene.schema import Scene
@@ -65,8 +65,6 @@ def run(scene: Scene, out: str | Path | None = None, progress: bool | None = Non
     check_options(scene, out=out, threads=threads, checkpoint_every=checkpoint_every, restart=restart, movie=movie)
     opts = RunOptions(progress, arch, threads, frames, movie, snapshots, checkpoint_every,
                       Path(restart) if restart is not None else None, member0)
-    if restart is not None:  # a refused restart writes nothing, not even --out or its lock
-        check_checkpoint_file(Path(restart), scene)
     if out is None:
         return _run(scene, None, opts)
     outputs = Outputs.of(out, scene)

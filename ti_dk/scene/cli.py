@@ -90,11 +90,11 @@ def _run(args: argparse.Namespace) -> int:
         scene = load.load_scene(args.scene, **overrides)
         if args.quick and "cells" not in overrides:
             scene = load.load_scene(args.scene, **overrides, cells=[max(8, n // 4) for n in scene.grid.cells])
-    for message in dict.fromkeys(str(w.message) for w in caught):  # each once (--quick loads twice)
-        print(f"ti_dk: warning: {_short(message)}", file=sys.stderr)
     load.check_options(scene, out=args.out, executor=args.executor, workers=args.workers,
                        chunk=args.chunk, threads=args.threads, scheduler=args.scheduler,
                        checkpoint_every=args.checkpoint_every, restart=args.restart, movie=args.movie)
+    for message in dict.fromkeys(str(w.message) for w in caught):  # each once (--quick loads twice)
+        print(f"ti_dk: warning: {_short(message)}", file=sys.stderr)
     runtime.check_stop()
     runtime.init(args.arch, args.threads)
     runtime.check_stop()

@@ -321,7 +321,7 @@ def check_options(scene: Scene, *, out: str | Path | None = None, executor: str 
         for flag, given in (("--workers", workers), ("--chunk", chunk), ("--scheduler", scheduler)):
             if given is not None:
                 raise ConfigError(f"{flag} is for --executor dask: drop it or add --executor dask")
-    for flag, path, check in (("--restart", restart, _check_restart), ("--out", out, _check_out)):
+    for flag, path, check in (("--restart", restart, lambda p: _check_restart(p, scene)), ("--out", out, _check_out)):
         try:
             if path is not None:
                 check(path)
@@ -329,9 +329,14 @@ def check_options(scene: Scene, *, out: str | Path | None = None, executor: str 
             raise ConfigError(f"{flag}: {exc.strerror}; give a shorter, plain path") from None
 
 
-def _check_restart(restart: str | Path) -> None:
+def _check_restart(restart: str | Path, scene: Scene) -> None:
+    """A checkpoint of this ti_dk's format, whole, for these settings (the full check of its content
+    against the solvers comes when it is loaded)."""
+    from ..control.checkpoint import check_checkpoint_file
+
     if not Path(restart).is_file():
         raise ConfigError(f"--restart {restart}: no such checkpoint file")
+    check_checkpoint_file(Path(restart), scene)
 
 
 def _check_out(out: str | Path) -> None:
