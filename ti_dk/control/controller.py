@@ -69,7 +69,7 @@ def run(scene: Scene, out: str | Path | None = None, progress: bool | None = Non
         return _run(scene, None, opts)
     outputs = Outputs.of(out, scene)
     check_stop()
-    with outputs.claim(overwrite, fresh=restart is None):
+    with outputs.claim(overwrite, fresh=restart is None) as outputs:
         try:
             return _run(scene, outputs, opts)
         except OSError as exc:  # disk full, quota, permission: the run file is already closed

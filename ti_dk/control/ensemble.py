@@ -72,7 +72,7 @@ def run(scene: Scene, executor: str = "local", out: str | Path | None = None, pr
     if out is None:
         return _run_dask(scene, None, progress, chunk, workers, threads, scheduler)
     outputs = Outputs.of(out, scene)
-    with outputs.claim(overwrite):
+    with outputs.claim(overwrite) as outputs:
         try:
             return _run_dask(scene, outputs, progress, chunk, workers, threads, scheduler)
         except OSError as exc:

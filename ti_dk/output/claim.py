@@ -1,11 +1,13 @@
 """Where a run writes and how it takes its output: every path inside ``--out``, an exclusive lock,
 and a result replaced only once the new one is whole.
 
-A run never writes through a link and never writes over a finished result: its run file, frames,
-snapshots and movie are written into a staging folder beside them (``.<stem>.partial``) and moved
-into place (``rename``, which replaces a name and never follows it) only when the run has
-finished, or, for a run that stopped or failed, when no finished result would be lost. A failed
-``--overwrite`` thus leaves the old result, frames and snapshots as they were.
+A run never writes through a link, never replaces a file it did not write, and never writes over
+a finished result: with one in place (``--overwrite``), its run file, frames, snapshots and movie
+are written into a staging folder beside them (``.<stem>.partial``) and moved into place
+(``rename``, which replaces a name and never follows it) only when the run has finished. A failed
+or stopped replace thus leaves the old result, frames and snapshots as they were. With no finished
+result in place, a run writes in place, so that a killed one leaves its incomplete file where it
+is looked for.
 """
 from __future__ import annotations
 
@@ -15,7 +17,7 @@ import shutil
 import sys
 import tempfile
 from contextlib import contextmanager
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import h5py
@@ -32,11 +34,12 @@ class Outputs:
     ``…_openpmd/``, ``movie`` ``….mp4`` (together: the result, :attr:`RESULT`), ``checkpoint``
     ``…_checkpoint.h5``, ``chunks`` ``…_chunks/`` (Dask), ``lock`` ``….lock`` (held while a run
     writes any of them) and ``stage`` ``.….partial/``, where the result is written before it takes
-    its place (:meth:`staged`).
+    its place (:meth:`staged`) when the run replaces a finished result (``staging``).
     """
 
     out: Path
     stem: str
+    staging: bool = False  # the result is written in ``stage`` (a finished one is in place)
 
     @classmethod
     def of(cls, out: str | Path, scene) -> "Outputs":
@@ -61,7 +64,7 @@ class Outputs:
 
     def staged(self, path: Path) -> Path:
         """Where the result's part ``path`` is written until the run ends."""
-        return self.stage / path.name
+        return self.stage / path.name if self.staging else path
 
     def chunk(self, member0: int) -> Path:
         """The file of the finished chunk whose first member is ``member0`` (Dask)."""
@@ -74,29 +77,32 @@ class Outputs:
     @contextmanager
     def claim(self, overwrite: bool = False, fresh: bool = True):
         """Hold the exclusive lock for the whole run; refuse a busy output, a complete result (without
-        ``overwrite``) and anything at the output's paths that is not ti_dk's.
+        ``overwrite``) and anything at the output's paths that is not ti_dk's; yield the outputs to
+        write, staged (:meth:`staged`) when a complete result is in place.
 
-        The result is staged (:meth:`staged`); a ``fresh`` run (not a restart) starts from an empty
-        stage, a restart from the stage its run left or from the frames and snapshots in place.
-        On the way out the stage takes the result's place after a finished run, or after a failed
-        one when no complete result is there; otherwise the old result stays whole and the stage
-        stays for ``--restart`` (if there is a checkpoint). The lock file is removed at the end.
+        A ``fresh`` run (not a restart) starts from an empty stage, or in place after removing the
+        parts of an unfinished result; a restart continues the stage its run left, or the files in
+        place. On the way out the stage takes the result's place after a finished run; after a
+        failed or stopped one the old result stays whole and the stage stays for ``--restart``
+        (if there is a checkpoint). The lock file is removed at the end.
         """
         fd = self._take_lock()
-        finished = False
+        finished, claimed = False, self
         try:
             self._refuse_foreign()
-            if not overwrite and is_complete(self.run_file):
+            complete = is_complete(self.run_file)
+            if complete and not overwrite:
                 raise ConfigError(f"{self.run_file} holds a complete result: add --overwrite to replace it, "
                                   "or give another --out")
-            self._open_stage(fresh)
-            yield self
+            claimed = replace(self, staging=complete)
+            claimed._prepare(fresh)
+            yield claimed
             finished = True
         except OSError as exc:
             raise output_error(self.out, exc) from None
         finally:
             try:
-                self._settle(finished)
+                claimed._settle(finished)
             finally:
                 self._drop_lock(fd)
 
@@ -162,25 +168,26 @@ class Outputs:
         if self.run_file.exists() and not is_run_file(self.run_file):
             raise ConfigError(f"{self.run_file} is not a ti_dk run file: move it away or give another --out")
 
-    def _open_stage(self, fresh: bool) -> None:
-        """An empty stage for a fresh run; for a restart, the stage its run left or else a copy of the
-        frames and snapshots in place (later frames are rewritten, so the ones in place stay whole)."""
+    def _prepare(self, fresh: bool) -> None:
+        """For a fresh run, no stage left by an earlier one and, in place, no part of an unfinished
+        result (a series never mixes two runs); for a staged one, its stage (a restart's kept one)."""
         if fresh and self.stage.exists():
             shutil.rmtree(self.stage)
-        if self.stage.exists():
-            return
-        self.stage.mkdir()
-        if not fresh:
-            for folder in (self.frames, self.snapshots):
-                if folder.is_dir():
-                    shutil.copytree(folder, self.staged(folder), symlinks=True)
+        if self.staging:
+            self.stage.mkdir(exist_ok=True)
+        elif fresh:
+            for part in self.result:
+                if part.is_dir():
+                    shutil.rmtree(part)
+                else:
+                    part.unlink(missing_ok=True)
 
     def _settle(self, finished: bool) -> None:
         """The stage takes the result's place, or stays (see :meth:`claim`)."""
-        if not self.stage.is_dir():
+        if not self.staging or not self.stage.is_dir():
             return
         try:
-            if self.staged(self.run_file).exists() and (finished or not is_complete(self.run_file)):
+            if finished:
                 self._swap()
             elif not self.checkpoint.exists() or not self.staged(self.run_file).exists():
                 shutil.rmtree(self.stage, ignore_errors=True)
