@@ -45,3 +45,11 @@ def digest_on_threads(script: str, threads=(1, 2)) -> list[str]:
     env = dict(os.environ, PYTHONPATH=str(Path(ti_dk.__file__).resolve().parent.parent))
     return [subprocess.run([sys.executable, "-c", script, str(t)], env=env, capture_output=True, text=True,
                            check=True).stdout.split()[-1] for t in threads]
+
+
+def file_tree(folder: Path) -> dict[str, str]:
+    """Every file under ``folder`` (hidden ones included) with the SHA-256 of its bytes."""
+    import hashlib
+
+    return {str(p.relative_to(folder)): hashlib.sha256(p.read_bytes()).hexdigest()
+            for p in sorted(folder.rglob("*")) if p.is_file()}

@@ -11,7 +11,7 @@ from openpmd_viewer import OpenPMDTimeSeries
 import ti_dk
 from ti_dk import load_scene, run
 
-from ..helpers import ROOT
+from ..helpers import ROOT, file_tree
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -122,20 +122,12 @@ def _scene2d(cells=16, t_end=0.002):
                       output_times=[0.0, 0.001])
 
 
-def _tree(folder):
-    """Every file under ``folder`` (hidden ones included) with the SHA-256 of its bytes."""
-    import hashlib
-
-    return {str(p.relative_to(folder)): hashlib.sha256(p.read_bytes()).hexdigest()
-            for p in sorted(folder.rglob("*")) if p.is_file() or p.is_symlink()}
-
-
 @pytest.fixture
 def finished(tmp_path):
     """A complete result (run file, frames, snapshots) in tmp_path/out and the tree of its bytes."""
     out = tmp_path / "out"
     run(_scene2d(), out=out)
-    tree = _tree(out)
+    tree = file_tree(out)
     assert any("frames/frame_" in k for k in tree) and any("openpmd/data" in k for k in tree), tree
     return out, tree
 
@@ -188,10 +180,10 @@ def test_a_foreign_file_at_the_run_path_is_refused_even_with_overwrite(tmp_path,
         path.write_text("my notes, not a run")
     else:
         path.touch()
-    before = _tree(out)
+    before = file_tree(out)
     with pytest.raises(ConfigError, match=message):
         run(_scene2d(), out=out, overwrite=overwrite)
-    assert _tree(out) == before and sorted(p.name for p in out.iterdir()) == [path.name]
+    assert file_tree(out) == before and sorted(p.name for p in out.iterdir()) == [path.name]
 
 
 def _failing(monkeypatch, where, after):
@@ -229,11 +221,12 @@ def test_a_failed_overwrite_leaves_the_old_result_byte_identical(finished, monke
         run(_scene2d(8), out=out, overwrite=True)
     assert calls["n"] > after  # it did fail where asked
     assert "\n" not in str(err.value) and ("free space" in str(err.value)) == (where != "frames"), str(err.value)
-    assert _tree(out) == before  # no lock, no stage, nothing of the new run
+    assert file_tree(out) == before  # no lock, no stage, nothing of the new run
     monkeypatch.undo()
     run(_scene2d(8), out=out, overwrite=True)  # a successful one replaces them all
-    after_tree = _tree(out)
-    assert _shape(out) == ((8, 8), True) and {k.split("/")[0] for k in after_tree} == {k.split("/")[0] for k in before}
+    after_tree = file_tree(out)
+    assert _shape(out) == ((8, 8), True)
+    assert {k.split("/")[0] for k in after_tree} == {k.split("/")[0] for k in before}  # the same parts, all new
     assert not set(after_tree.items()) & set(before.items()), "every file of the old result replaced"
     for p in (out / "ellipse2d_fv_openpmd").glob("data*.h5"):
         with h5py.File(p) as f:
@@ -284,7 +277,7 @@ def test_a_stopped_replace_keeps_the_old_result_and_its_restart_finishes_bit_for
         run(scene, out=out, overwrite=True, checkpoint_every=3)
     assert "is marked incomplete" not in str(err.value)  # the complete one in place is kept
     monkeypatch.undo()
-    tree = _tree(out)
+    tree = file_tree(out)
     assert {k: v for k, v in tree.items() if not k.startswith((".", "ellipse2d_fv_checkpoint"))} == before
     with h5py.File(out / ".ellipse2d_fv.partial" / "ellipse2d_fv.h5") as f:  # what the stopped run wrote
         assert not f.attrs["complete"] and f["diagnostics/time"].shape == (3,)  # flushed up to the stop

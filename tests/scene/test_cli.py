@@ -1,7 +1,6 @@
 """``python -m ti_dk.scene`` as a user runs it: results, one-line errors, thread-count independence."""
 import hashlib
 import json
-import os
 import signal
 import subprocess
 import sys
@@ -12,7 +11,7 @@ import imageio.v3 as iio
 import numpy as np
 import pytest
 
-from ..helpers import user_env
+from ..helpers import file_tree, user_env
 
 
 def cli(*args, cwd):
@@ -495,12 +494,6 @@ def test_a_read_only_output_is_refused_before_the_run(tmp_path, mount, capsys):
     assert code == 2 and err.count("\n") == 1 and "is not writable" in err, err
 
 
-def _tree(folder):
-    """Every file under ``folder`` (hidden ones included) with the SHA-256 of its bytes."""
-    return {str(p.relative_to(folder)): hashlib.sha256(p.read_bytes()).hexdigest()
-            for p in sorted(folder.rglob("*")) if p.is_file()}
-
-
 SMALL = ["ellipse2d", "--method", "fv", "--set", "compare=none", "--t-end", "0.002", "--set", "output_times=[0,0.001]"]
 
 
@@ -509,21 +502,21 @@ def test_a_failed_overwrite_on_a_full_or_read_only_disk_keeps_the_old_result(tmp
     out = disk / "out"
     r = cli(*SMALL, "--set", "cells=[16,16]", "--out", str(out), cwd=tmp_path)
     assert r.returncode == 0, r.stderr
-    before = _tree(out)
+    before = file_tree(out)
     assert len(before) >= 7  # run file, frames, snapshots
     subprocess.run(["dd", "if=/dev/zero", f"of={disk / 'filler'}", "bs=64k"], capture_output=True)  # to ENOSPC
     r = cli(*SMALL, "--set", "cells=[24,24]", "--overwrite", "--out", str(out), cwd=tmp_path)
     assert r.returncode == 1 and r.stderr.count("\n") == 1 and "the disk is full" in r.stderr, r.stderr
-    assert "Traceback" not in r.stderr and _tree(out) == before  # byte-identical, no lock, no stage
+    assert "Traceback" not in r.stderr and file_tree(out) == before  # byte-identical, no lock, no stage
     (disk / "filler").unlink()
     assert subprocess.run(["mount", "-o", "remount,ro", str(disk)]).returncode == 0
     r = cli(*SMALL, "--set", "cells=[24,24]", "--overwrite", "--out", str(out), cwd=tmp_path)
     assert r.returncode == 2 and r.stderr.count("\n") == 1 and "not writable" in r.stderr, r.stderr
-    assert _tree(out) == before
+    assert file_tree(out) == before
     assert subprocess.run(["mount", "-o", "remount,rw", str(disk)]).returncode == 0
     r = cli(*SMALL, "--set", "cells=[24,24]", "--overwrite", "--out", str(out), cwd=tmp_path)
     assert r.returncode == 0, r.stderr
-    after = _tree(out)
+    after = file_tree(out)
     assert not set(after.items()) & set(before.items()) and {k.split("/")[0] for k in after} == \
         {k.split("/")[0] for k in before}  # every part replaced, nothing else left
     with h5py.File(out / "ellipse2d_fv.h5") as f:

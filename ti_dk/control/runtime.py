@@ -4,9 +4,6 @@ from __future__ import annotations
 import contextlib
 import ctypes
 import io
-import os
-import signal
-import threading
 from dataclasses import dataclass, field
 from pathlib import Path
 
