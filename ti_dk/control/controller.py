@@ -56,8 +56,9 @@ def run(scene: Scene, out: str | Path | None = None, progress: bool | None = Non
     ``restart`` continues from such a file, bit for bit as if never interrupted. ``member0``: the
     global index of the first member (a chunk of a larger ensemble, see :mod:`ti_dk.ensemble`).
 
-    Every path lies inside ``out`` (:class:`ti_dk.io.Outputs`); the run holds an exclusive lock on
-    it, so a second run there is refused, and replaces a complete result only with ``overwrite``.
+    Every path lies inside ``out`` (:class:`ti_dk.output.claim.Outputs`); the run holds an exclusive
+    lock on it, so a second run there is refused, and replaces a complete result only with
+    ``overwrite`` and only once it has finished (the old one stays whole if it fails or stops).
     A signal seen by :func:`ti_dk.runtime.stop_on_signals` stops it between steps
     (:class:`ti_dk.runtime.Stopped`); an I/O failure raises :class:`ti_dk.io.OutputError`; both
     leave the file marked incomplete.
