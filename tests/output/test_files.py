@@ -319,3 +319,30 @@ def test_a_stale_lock_is_named_and_taken_over_and_every_lock_is_removed(tmp_path
         holder.kill()
         holder.wait()
 
+
+
+def test_a_restart_in_place_writes_no_frame_through_a_link_planted_among_the_frames(tmp_path, monkeypatch):
+    import signal
+
+    from ti_dk.control import handlers
+    from ti_dk.control.runtime import Stopped, stop_on_signals
+
+    scene, out = _scene2d(8, t_end=0.01), tmp_path / "out"  # frames at steps 0, 1 and 10
+    write = handlers.Checkpoints.write
+
+    def stop_after(self, n):
+        write(self, n)
+        os.kill(os.getpid(), signal.SIGTERM)
+
+    monkeypatch.setattr(handlers.Checkpoints, "write", stop_after)
+    with stop_on_signals(), pytest.raises(Stopped, match="is marked incomplete; resume with --restart"):
+        run(scene, out=out, checkpoint_every=3)
+    monkeypatch.undo()
+    frames = out / "ellipse2d_fv_frames"
+    assert sorted(p.name for p in frames.iterdir()) == ["frame_0000.png", "frame_0001.png"]
+    precious = tmp_path / "precious.png"
+    precious.write_bytes(b"not yours")
+    (frames / "frame_0002.png").symlink_to(precious)
+    run(scene, out=out, restart=out / "ellipse2d_fv_checkpoint.h5")
+    assert precious.read_bytes() == b"not yours" and not (frames / "frame_0002.png").is_symlink()
+    assert _shape(out) == ((8, 8), True)

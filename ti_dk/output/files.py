@@ -99,6 +99,7 @@ class RunFile:
         self.at = at or path  # where it is written (``Outputs.staged``)
         self.at.parent.mkdir(parents=True, exist_ok=True)
         require_space(self.at.parent, 64 << 10)
+        self.at.unlink(missing_ok=True)  # a new file: never an old one truncated, nor a link followed
         self.h5 = h5py.File(self.at, "w")
         a = self.h5.attrs
         a["scene"] = scene_json(scene)
