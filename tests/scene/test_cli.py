@@ -54,6 +54,7 @@ def _files(tmp):
     (tmp / "digits.toml").write_text(f'[grid]\ncells = [{BIG}]\n[init]\nname = "uniform"\n')
     (tmp / "deep.toml").write_text(f'[grid]\ncells = {DEEP}\n[init]\nname = "uniform"\n')
     (tmp / "deep3.toml").write_text('[grid]\ncells = [[[[8]]]]\n[init]\nname = "uniform"\n')
+    (tmp / "twice.toml").write_text('cells = [8]\n[grid]\ncells = [16]\n[init]\nname = "uniform"\n')
 
 
 BIG = "9" * 20000  # a number of tens of thousands of digits
@@ -199,6 +200,10 @@ HOSTILE = [  # (argv, exit status, what the one line must say)
     (V + ["--set", "lengths=[1e-170]"], 2, "under- or overflows"),
     (V + ["--set", "lengths=[1e300]", "--set", "C=1e-300"], 2, "under- or overflows"),
     (V + ["--set", "output_times=[1e308]", "--set", "C=0"], 2, "C = 0.0"),
+    # options that would silently undo each other
+    (V + ["--quick", "--set", "cells=[40]"], 2, "--quick sets the cells"),
+    (V + ["--movie", "--no-frames"], 2, "--movie is made of frames: drop --no-frames or --movie"),
+    (["{tmp}/twice.toml"], 2, "cells is given twice, at the top of the file and in [grid]"),
 ]
 
 

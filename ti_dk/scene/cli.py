@@ -84,15 +84,18 @@ def main(argv: list[str] | None = None) -> int:
 def _run(args: argparse.Namespace) -> int:
     """The run the parsed command line asks for; its summary on stdout."""
     overrides = load.command_overrides(args.set, {k: getattr(args, k) for k in load.FLAGS})
+    if args.quick and "cells" in overrides:
+        raise schema.ConfigError("--quick sets the cells (a quarter per axis): drop it or --set cells")
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", schema.ClampWarning)
         warnings.simplefilter("always", load.InputWarning)
         scene = load.load_scene(args.scene, **overrides)
-        if args.quick and "cells" not in overrides:
+        if args.quick:
             scene = load.load_scene(args.scene, **overrides, cells=[max(8, n // 4) for n in scene.grid.cells])
     load.check_options(scene, out=args.out, executor=args.executor, workers=args.workers,
                        chunk=args.chunk, threads=args.threads, scheduler=args.scheduler,
-                       checkpoint_every=args.checkpoint_every, restart=args.restart, movie=args.movie)
+                       checkpoint_every=args.checkpoint_every, restart=args.restart, movie=args.movie,
+                       frames=not args.no_frames)
     for message in dict.fromkeys(str(w.message) for w in caught):  # each once (--quick loads twice)
         print(f"ti_dk: warning: {_short(message)}", file=sys.stderr)
     runtime.check_stop()

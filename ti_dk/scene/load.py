@@ -81,6 +81,8 @@ def _flatten(raw: dict[str, Any]) -> dict[str, Any]:
             if home != table:
                 raise ConfigError(f"[{table}] {sub}: this key belongs "
                                   + (f"in [{home}]" if home else "at the top of the file, before any table"))
+            if name in flat:  # also at the top of the file: one would silently win
+                raise ConfigError(f"{name} is given twice, at the top of the file and in [{table}]: give it once")
             flat[name] = v
     return flat
 
@@ -301,13 +303,16 @@ def _check_time_step(scene: Scene) -> None:
 def check_options(scene: Scene, *, out: str | Path | None = None, executor: str = "local",
                   workers: int | None = None, chunk: int | None = None, threads: int | None = None,
                   scheduler: str | None = None, checkpoint_every: int = 0, restart: str | Path | None = None,
-                  movie: bool = False) -> None:
-    """Check the options of a run (the command line's, or :func:`ti_dk.run`'s) before anything starts."""
+                  movie: bool = False, frames: bool | None = None) -> None:
+    """Check the options of a run (the command line's, or :func:`ti_dk.run`'s) before anything starts;
+    options that would silently undo each other are refused too."""
     def whole(name: str, value: Any, lo: int, hi: int | None = None) -> None:
         if value is None:
             return
         Key("int", "", lo=lo, hi=hi).check(name, value)
 
+    if movie and frames is False:
+        raise ConfigError("--movie is made of frames: drop --no-frames or --movie")
     whole("--threads", threads, 1, 4096)
     whole("--checkpoint-every", checkpoint_every, 0, MAX_STEPS)
     whole("--workers", workers, 1, 4 * (os.cpu_count() or 1) if scheduler is None else 100_000)
