@@ -25,9 +25,15 @@ def as_counts(stats, row, vol):
             "skewness": stats.skewness[row], "kurtosis": stats.kurtosis[row]}
 
 
+def user_env() -> dict:
+    """The environment of a command as a user runs it, importing the ti_dk under test (this tree's,
+    not whichever one is installed), from any folder."""
+    return dict(os.environ, PYTHONWARNINGS="ignore", PYTHONPATH=str(ROOT))
+
+
 def command(module, *args, cwd=ROOT):
     """``python -m <module> <args>`` as a user runs it (from the repository root by default)."""
-    env = dict(os.environ, PYTHONWARNINGS="ignore")
+    env = user_env()
     return subprocess.run([sys.executable, "-m", module, *args], cwd=cwd, env=env, capture_output=True, text=True,
                           timeout=600)
 
@@ -39,3 +45,11 @@ def digest_on_threads(script: str, threads=(1, 2)) -> list[str]:
     env = dict(os.environ, PYTHONPATH=str(Path(ti_dk.__file__).resolve().parent.parent))
     return [subprocess.run([sys.executable, "-c", script, str(t)], env=env, capture_output=True, text=True,
                            check=True).stdout.split()[-1] for t in threads]
+
+
+def file_tree(folder: Path) -> dict[str, str]:
+    """Every file under ``folder`` (hidden ones included) with the SHA-256 of its bytes."""
+    import hashlib
+
+    return {str(p.relative_to(folder)): hashlib.sha256(p.read_bytes()).hexdigest()
+            for p in sorted(folder.rglob("*")) if p.is_file()}
