@@ -180,14 +180,23 @@ class Walker:
         Along each axis the offset ``u ∈ (0, 1)`` has density ``1 + b (u − ½)`` with
         ``b = tilt[a] ∈ [−2, 2]`` (0: uniform, as in paper §3), drawn by inverting its CDF
         ``u + b (u² − u)/2 = r`` in the cancellation-free form ``u = 2r / (c + √(c² + 2br))``,
-        ``c = 1 − b/2``.
+        ``c = 1 − b/2``. With a potential the profile is exponential instead, density ∝ e^{−β u}
+        with ``β = tilt[a]`` (the equilibrium e^{−U} of a potential linear across the cell),
+        ``u = −ln(1 − r (1 − e^{−β}))/β`` (``r − β r (1 − r)/2`` for |β| < 10⁻⁴).
         """
         y = ti.Vector.zero(self.real, self.dim)
         for a in ti.static(range(self.dim)):
             r = rng.uniform(bits[a], self.real)
             b = self.real(tilt[a])
-            c = self.real(1.0) - self.real(0.5) * b
-            u = self.real(2.0) * r / (c + ti.sqrt(ti.max(c * c + self.real(2.0) * b * r, self.real(0.0))))
+            u = r
+            if ti.static(self.drifting):
+                if ti.abs(b) > 1e-4:
+                    u = -ti.log(self.real(1.0) - r * (self.real(1.0) - ti.exp(-b))) / b
+                else:
+                    u = r - self.real(0.5) * b * r * (self.real(1.0) - r)
+            else:
+                c = self.real(1.0) - self.real(0.5) * b
+                u = self.real(2.0) * r / (c + ti.sqrt(ti.max(c * c + self.real(2.0) * b * r, self.real(0.0))))
             u = ti.min(u, self.real(1.0 - 2.0**-24))  # stay inside the cell whatever the rounding
             y[a] = (self.real(C[a]) + u) * self.real(self.grid.dx[a])
         return y
@@ -203,7 +212,78 @@ class Walker:
 
 
 @ti.data_oriented
-class ParticleSolver(Solver):
+class Placement:
+    """The initial placements of :class:`ParticleSolver` (kernels on its pool, walker and key):
+    per cell, uniform in the domain, or a fixed total drawn by cell."""
+
+    @ti.kernel
+    def _sample(self, ppc: ti.template()):
+        key = ti.math.uvec2(self.key[0], self.key[1])
+        self.overflow[None] = 0
+        for e in range(self.ensemble):
+            k = 0
+            for C in ti.grouped(ti.ndrange(*self.n)):  # serial within a member: slots in cell order
+                lin = ti.u32(0)
+                for a in ti.static(range(self.dim)):
+                    lin = lin * ti.u32(self.n[a]) + ti.u32(C[a])
+                bits = rng.philox4x32(ti.math.uvec4(lin, 0, self.walker.member(e), ti.u32(rng.SAMPLE_COUNT)), key)
+                m = self.walker.how_many(ppc[C], bits[0])
+                for _ in range(m):
+                    if k < self.capacity:
+                        r = rng.philox4x32(ti.math.uvec4(ti.u32(k), 0, self.walker.member(e), ti.u32(rng.SAMPLE_POSITION)), key)
+                        self.pool.x[0, e, k] = self.walker.in_cell(C, r, ti.Vector.zero(self.real, self.dim))
+                    k += 1
+            if k > self.capacity:
+                self.overflow[None] = 1
+            self.pool.n[0, e] = ti.min(k, self.capacity)
+
+    @ti.kernel
+    def _place_uniform(self, total: ti.i32):
+        key = ti.math.uvec2(self.key[0], self.key[1])
+        self.overflow[None] = 0
+        if total > self.capacity:
+            self.overflow[None] = 1
+        for e, k in ti.ndrange(self.ensemble, self.capacity):
+            if k < total:
+                r = rng.philox4x32(ti.math.uvec4(ti.u32(k), 0, self.walker.member(e), ti.u32(rng.SAMPLE_POSITION)), key)
+                y = ti.Vector.zero(self.real, self.dim)
+                for a in ti.static(range(self.dim)):
+                    y[a] = rng.uniform(r[a], self.real) * self.real(self.grid.lengths[a])
+                self.pool.x[0, e, k] = y
+        for e in range(self.ensemble):
+            self.pool.n[0, e] = ti.min(total, self.capacity)
+
+    @ti.kernel
+    def _place_exact(self, total: ti.i32, cdf: ti.template()):
+        """``total`` particles per member, each in the first cell whose cumulative share ``cdf`` exceeds
+        a uniform (bisection over the cells in C order), uniform within it."""
+        key = ti.math.uvec2(self.key[0], self.key[1])
+        self.overflow[None] = 0
+        if total > self.capacity:
+            self.overflow[None] = 1
+        for e, k in ti.ndrange(self.ensemble, self.capacity):
+            if k < total:
+                r = rng.philox4x32(ti.math.uvec4(ti.u32(k), 0, self.walker.member(e), ti.u32(rng.SAMPLE_POSITION)), key)
+                u = rng.uniform(r[3], ti.f64)
+                lo, hi = 0, cdf.shape[0] - 1
+                while lo < hi:
+                    mid = (lo + hi) // 2
+                    if cdf[mid] > u:
+                        hi = mid
+                    else:
+                        lo = mid + 1
+                C = ti.Vector.zero(ti.i32, self.dim)
+                for b in ti.static(range(self.dim)):
+                    a = ti.static(self.dim - 1 - b)
+                    C[a] = lo % self.n[a]
+                    lo //= self.n[a]
+                self.pool.x[0, e, k] = self.walker.in_cell(C, r, ti.Vector.zero(self.real, self.dim))
+        for e in range(self.ensemble):
+            self.pool.n[0, e] = ti.min(total, self.capacity)
+
+
+@ti.data_oriented
+class ParticleSolver(Placement, Solver):
     r"""Brownian walkers with D = ½ for every ensemble member (paper §3, the particle model).
 
     One step moves each particle by the step of :meth:`Walker.move` (drawn there as ``bits``,
@@ -311,71 +391,6 @@ class ParticleSolver(Solver):
             )
 
     # -- kernels ------------------------------------------------------------------------
-    @ti.kernel
-    def _sample(self, ppc: ti.template()):
-        key = ti.math.uvec2(self.key[0], self.key[1])
-        self.overflow[None] = 0
-        for e in range(self.ensemble):
-            k = 0
-            for C in ti.grouped(ti.ndrange(*self.n)):  # serial within a member: slots in cell order
-                lin = ti.u32(0)
-                for a in ti.static(range(self.dim)):
-                    lin = lin * ti.u32(self.n[a]) + ti.u32(C[a])
-                bits = rng.philox4x32(ti.math.uvec4(lin, 0, self.walker.member(e), ti.u32(rng.SAMPLE_COUNT)), key)
-                m = self.walker.how_many(ppc[C], bits[0])
-                for _ in range(m):
-                    if k < self.capacity:
-                        r = rng.philox4x32(ti.math.uvec4(ti.u32(k), 0, self.walker.member(e), ti.u32(rng.SAMPLE_POSITION)), key)
-                        self.pool.x[0, e, k] = self.walker.in_cell(C, r, ti.Vector.zero(self.real, self.dim))
-                    k += 1
-            if k > self.capacity:
-                self.overflow[None] = 1
-            self.pool.n[0, e] = ti.min(k, self.capacity)
-
-    @ti.kernel
-    def _place_uniform(self, total: ti.i32):
-        key = ti.math.uvec2(self.key[0], self.key[1])
-        self.overflow[None] = 0
-        if total > self.capacity:
-            self.overflow[None] = 1
-        for e, k in ti.ndrange(self.ensemble, self.capacity):
-            if k < total:
-                r = rng.philox4x32(ti.math.uvec4(ti.u32(k), 0, self.walker.member(e), ti.u32(rng.SAMPLE_POSITION)), key)
-                y = ti.Vector.zero(self.real, self.dim)
-                for a in ti.static(range(self.dim)):
-                    y[a] = rng.uniform(r[a], self.real) * self.real(self.grid.lengths[a])
-                self.pool.x[0, e, k] = y
-        for e in range(self.ensemble):
-            self.pool.n[0, e] = ti.min(total, self.capacity)
-
-    @ti.kernel
-    def _place_exact(self, total: ti.i32, cdf: ti.template()):
-        """``total`` particles per member, each in the first cell whose cumulative share ``cdf`` exceeds
-        a uniform (bisection over the cells in C order), uniform within it."""
-        key = ti.math.uvec2(self.key[0], self.key[1])
-        self.overflow[None] = 0
-        if total > self.capacity:
-            self.overflow[None] = 1
-        for e, k in ti.ndrange(self.ensemble, self.capacity):
-            if k < total:
-                r = rng.philox4x32(ti.math.uvec4(ti.u32(k), 0, self.walker.member(e), ti.u32(rng.SAMPLE_POSITION)), key)
-                u = rng.uniform(r[3], ti.f64)
-                lo, hi = 0, cdf.shape[0] - 1
-                while lo < hi:
-                    mid = (lo + hi) // 2
-                    if cdf[mid] > u:
-                        hi = mid
-                    else:
-                        lo = mid + 1
-                C = ti.Vector.zero(ti.i32, self.dim)
-                for b in ti.static(range(self.dim)):
-                    a = ti.static(self.dim - 1 - b)
-                    C[a] = lo % self.n[a]
-                    lo //= self.n[a]
-                self.pool.x[0, e, k] = self.walker.in_cell(C, r, ti.Vector.zero(self.real, self.dim))
-        for e in range(self.ensemble):
-            self.pool.n[0, e] = ti.min(total, self.capacity)
-
     @ti.kernel
     def _init_ids(self):
         for e, k in ti.ndrange(self.ensemble, self.capacity):

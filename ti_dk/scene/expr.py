@@ -21,7 +21,7 @@ VARIABLES = ("x", "y", "z")  # axis 0, 1, 2
 CONSTANTS = {"pi": math.pi, "e": math.e}
 FUNCS = ("sin", "cos", "tan", "exp", "log", "sqrt", "abs", "tanh", "atan")
 _BINARY = {ast.Add: "add", ast.Sub: "sub", ast.Mult: "mul", ast.Div: "div", ast.Pow: "pow"}
-QUADRATURE = {1: 8, 2: 6, 3: 4}  # Gauss–Legendre points per axis for cell averages, by dimension
+QUADRATURE = {1: 16, 2: 8, 3: 4}  # Gauss–Legendre points per axis for cell averages, by dimension
 
 
 class ExprError(ValueError):
@@ -112,6 +112,8 @@ def derivative(t: tuple, a: int) -> tuple:
         return m("neg", derivative(t[1], a))
     if op in ("add", "sub"):
         return m(op, derivative(t[1], a), derivative(t[2], a))
+    if op == "call":
+        return _call_derivative(t, a)
     u, du = t[1], derivative(t[1], a)
     if op == "mul":
         return m("add", m("mul", du, t[2]), m("mul", u, derivative(t[2], a)))
@@ -122,12 +124,18 @@ def derivative(t: tuple, a: int) -> tuple:
         if v[0] == "num":  # c u^(c-1) u'
             return m("mul", m("mul", v, m("pow", u, _num(v[1] - 1))), du)
         return m("mul", t, m("add", m("mul", dv, ("call", "log", u)), m("div", m("mul", v, du), u)))
+    raise AssertionError(op)
+
+
+def _call_derivative(t: tuple, a: int) -> tuple:
+    """∂/∂x_a of ``f(u)``: f'(u) u'."""
+    m, u = _make, t[2]
     inner = {"sin": ("call", "cos", u), "cos": m("neg", ("call", "sin", u)), "exp": t,
              "tan": m("div", _num(1), m("pow", ("call", "cos", u), _num(2))), "log": m("div", _num(1), u),
              "sqrt": m("div", _num(0.5), t), "abs": ("call", "sign", u),
              "tanh": m("sub", _num(1), m("pow", t, _num(2))),
              "atan": m("div", _num(1), m("add", _num(1), m("pow", u, _num(2))))}[t[1]]
-    return m("mul", inner, du)
+    return m("mul", inner, derivative(u, a))
 
 
 _NUMPY = {"sin": np.sin, "cos": np.cos, "tan": np.tan, "exp": np.exp, "log": np.log, "sqrt": np.sqrt,
