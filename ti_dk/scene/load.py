@@ -257,8 +257,11 @@ def _check_sizes(scene: Scene) -> None:
 
 
 def _check_initial(scene: Scene) -> None:
-    """The initial density: computable (formula, file, potential), finite and >= 0 in every cell."""
-    key_ = {"expression": "density", "array": "density_file", "boltzmann": "potential"}.get(scene.init.name, "init")
+    """An initial density given as a formula, a file or by the potential: computable, finite and
+    >= 0 in every cell (the others are by construction)."""
+    key_ = {"expression": "density", "array": "density_file", "boltzmann": "potential"}.get(scene.init.name)
+    if key_ is None:
+        return
     try:
         ppc = scene.initial_ppc
     except (ExprError, initial.InitError) as exc:
