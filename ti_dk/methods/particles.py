@@ -190,10 +190,10 @@ class Walker:
             b = self.real(tilt[a])
             u = r
             if ti.static(self.drifting):
-                if ti.abs(b) > 1e-4:
-                    u = -ti.log(self.real(1.0) - r * (self.real(1.0) - ti.exp(-b))) / b
-                else:
-                    u = r - self.real(0.5) * b * r * (self.real(1.0) - r)
+                steep = ti.abs(b) > 1e-4
+                bs = ti.select(steep, b, self.real(1.0))  # (no division by a constant 0 where tilt is 0)
+                u = ti.select(steep, -ti.log(self.real(1.0) - r * (self.real(1.0) - ti.exp(-bs))) / bs,
+                              r - self.real(0.5) * b * r * (self.real(1.0) - r))
             else:
                 c = self.real(1.0) - self.real(0.5) * b
                 u = self.real(2.0) * r / (c + ti.sqrt(ti.max(c * c + self.real(2.0) * b * r, self.real(0.0))))

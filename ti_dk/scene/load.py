@@ -84,6 +84,8 @@ def load_scene(name_or_path: str | Path, **overrides: Any) -> Scene:
     """
     name, raw = _read_toml(name_or_path)
     flat = _flatten(raw)
+    if overrides.get("init", flat.get("init")) != flat.get("init"):  # another initial condition: not the file's parameters
+        flat = {k: v for k, v in flat.items() if k not in INIT_KEYS}
     flat.update(overrides)
     flat.setdefault("name", name)
     return make_scene(flat)
