@@ -16,6 +16,7 @@ FORMULAS = {  # text: the same function written in Python
     "log(2 + tanh(x - y)) * abs(z - 0.5) + atan(3*x) - tan(0.5*y) + x**y": lambda x, y, z: np.log(2 + np.tanh(x - y))
     * np.abs(z - 0.5) + np.arctan(3 * x) - np.tan(0.5 * y) + x**y,
     "+x - -y / e": lambda x, y, z: x + y / math.e,
+    "x*step(x - 0.5) + step(0.3 - y)*z": lambda x, y, z: x * (x >= 0.5) + (y <= 0.3) * z,
 }
 POINTS = np.random.default_rng(3).uniform(0.05, 0.95, size=(3, 50))
 

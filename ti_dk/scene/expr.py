@@ -2,7 +2,7 @@
 
 A formula (``potential = "0.5*((x-0.5)/0.08)**2"``, an initial ``density``) is parsed with
 :mod:`ast` and only a whitelist is accepted: numbers, ``x y z``, ``pi e``, ``+ - * / **``, unary
-minus and the functions of :data:`FUNCS`; nothing is ever passed to ``eval``. The parsed formula
+minus and the functions of :data:`FUNCS` (``step(u)``: 1 where u ≥ 0, else 0, for boxes); nothing is ever passed to ``eval``. The parsed formula
 is a tree of tuples, evaluated three ways: on NumPy arrays (:func:`numpy_value`), as Taichi
 expressions at kernel-compile time (:func:`taichi_value`: a plain Python walk over the tree that
 Taichi's compiler runs while it traces the calling ``ti.func``, so each formula compiles to straight
@@ -19,7 +19,7 @@ import numpy as np
 
 VARIABLES = ("x", "y", "z")  # axis 0, 1, 2
 CONSTANTS = {"pi": math.pi, "e": math.e}
-FUNCS = ("sin", "cos", "tan", "exp", "log", "sqrt", "abs", "tanh", "atan")
+FUNCS = ("sin", "cos", "tan", "exp", "log", "sqrt", "abs", "tanh", "atan", "step")  # step(u): 1 where u >= 0, else 0
 _BINARY = {ast.Add: "add", ast.Sub: "sub", ast.Mult: "mul", ast.Div: "div", ast.Pow: "pow"}
 QUADRATURE = {1: 16, 2: 8, 3: 4}  # Gauss–Legendre points per axis for cell averages, by dimension
 
@@ -134,12 +134,13 @@ def _call_derivative(t: tuple, a: int) -> tuple:
              "tan": m("div", _num(1), m("pow", ("call", "cos", u), _num(2))), "log": m("div", _num(1), u),
              "sqrt": m("div", _num(0.5), t), "abs": ("call", "sign", u),
              "tanh": m("sub", _num(1), m("pow", t, _num(2))),
-             "atan": m("div", _num(1), m("add", _num(1), m("pow", u, _num(2))))}[t[1]]
+             "atan": m("div", _num(1), m("add", _num(1), m("pow", u, _num(2)))), "step": _num(0)}[t[1]]
     return m("mul", inner, derivative(u, a))
 
 
 _NUMPY = {"sin": np.sin, "cos": np.cos, "tan": np.tan, "exp": np.exp, "log": np.log, "sqrt": np.sqrt,
-          "abs": np.abs, "tanh": np.tanh, "atan": np.arctan, "sign": np.sign}
+          "abs": np.abs, "tanh": np.tanh, "atan": np.arctan, "sign": np.sign,
+          "step": lambda u: np.where(np.asarray(u) >= 0, 1.0, 0.0)}
 
 
 def numpy_value(t: tuple, x: tuple) -> Any:
@@ -179,7 +180,8 @@ class TaichiValue:
             u = self(t[2], x, real)
             f = {"sin": ti.sin, "cos": ti.cos, "tan": ti.tan, "exp": ti.exp, "log": ti.log, "sqrt": ti.sqrt,
                  "abs": ti.abs, "tanh": ti.tanh, "sign": ti.math.sign,
-                 "atan": lambda w: ti.atan2(w, ti.cast(1.0, real))}[t[1]]
+                 "atan": lambda w: ti.atan2(w, ti.cast(1.0, real)),
+                 "step": lambda w: ti.select(w >= 0, ti.cast(1.0, real), ti.cast(0.0, real))}[t[1]]
             return f(u)
         u = self(t[1], x, real)
         if op == "pow" and t[2][0] == "num" and float(t[2][1]).is_integer() and abs(t[2][1]) <= 64:

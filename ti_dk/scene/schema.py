@@ -136,7 +136,7 @@ class GridKeys(Geometry):
         form=f"a number in [0, {MAX_PPC:g}]; per axis, or [lo, hi] per axis")
     potential: Any = key(
         "special", "external potential U in units of k_BT, drift -grad(U)/2 (default none)", "",
-        form='a formula in x, y, z with + - * / ** sin cos tan exp log sqrt abs tanh atan pi, '
+        form='a formula in x, y, z with + - * / ** sin cos tan exp log sqrt abs tanh atan step pi, '
              'e.g. "0.5*((x-0.5)/0.08)**2"')
 
 
