@@ -238,7 +238,10 @@ class Placement:
             self.pool.n[0, e] = ti.min(k, self.capacity)
 
     @ti.kernel
-    def _place_uniform(self, total: ti.i32):
+    def _place(self, total: ti.i32, cdf: ti.template(), by_cell: ti.template()):
+        """``total`` particles per member, uniform in the domain; or (``by_cell``) each in the first
+        cell whose cumulative share ``cdf`` exceeds a uniform (bisection over the cells in C order),
+        uniform within it."""
         key = ti.math.uvec2(self.key[0], self.key[1])
         self.overflow[None] = 0
         if total > self.capacity:
@@ -247,37 +250,25 @@ class Placement:
             if k < total:
                 r = rng.philox4x32(ti.math.uvec4(ti.u32(k), 0, self.walker.member(e), ti.u32(rng.SAMPLE_POSITION)), key)
                 y = ti.Vector.zero(self.real, self.dim)
-                for a in ti.static(range(self.dim)):
-                    y[a] = rng.uniform(r[a], self.real) * self.real(self.grid.lengths[a])
+                if ti.static(by_cell):
+                    u = rng.uniform(r[3], ti.f64)
+                    lo, hi = 0, cdf.shape[0] - 1
+                    while lo < hi:
+                        mid = (lo + hi) // 2
+                        if cdf[mid] > u:
+                            hi = mid
+                        else:
+                            lo = mid + 1
+                    C = ti.Vector.zero(ti.i32, self.dim)
+                    for b in ti.static(range(self.dim)):
+                        a = ti.static(self.dim - 1 - b)
+                        C[a] = lo % self.n[a]
+                        lo //= self.n[a]
+                    y = self.walker.in_cell(C, r, ti.Vector.zero(self.real, self.dim))
+                else:
+                    for a in ti.static(range(self.dim)):
+                        y[a] = rng.uniform(r[a], self.real) * self.real(self.grid.lengths[a])
                 self.pool.x[0, e, k] = y
-        for e in range(self.ensemble):
-            self.pool.n[0, e] = ti.min(total, self.capacity)
-
-    @ti.kernel
-    def _place_exact(self, total: ti.i32, cdf: ti.template()):
-        """``total`` particles per member, each in the first cell whose cumulative share ``cdf`` exceeds
-        a uniform (bisection over the cells in C order), uniform within it."""
-        key = ti.math.uvec2(self.key[0], self.key[1])
-        self.overflow[None] = 0
-        if total > self.capacity:
-            self.overflow[None] = 1
-        for e, k in ti.ndrange(self.ensemble, self.capacity):
-            if k < total:
-                r = rng.philox4x32(ti.math.uvec4(ti.u32(k), 0, self.walker.member(e), ti.u32(rng.SAMPLE_POSITION)), key)
-                u = rng.uniform(r[3], ti.f64)
-                lo, hi = 0, cdf.shape[0] - 1
-                while lo < hi:
-                    mid = (lo + hi) // 2
-                    if cdf[mid] > u:
-                        hi = mid
-                    else:
-                        lo = mid + 1
-                C = ti.Vector.zero(ti.i32, self.dim)
-                for b in ti.static(range(self.dim)):
-                    a = ti.static(self.dim - 1 - b)
-                    C[a] = lo % self.n[a]
-                    lo //= self.n[a]
-                self.pool.x[0, e, k] = self.walker.in_cell(C, r, ti.Vector.zero(self.real, self.dim))
         for e in range(self.ensemble):
             self.pool.n[0, e] = ti.min(total, self.capacity)
 
@@ -334,12 +325,10 @@ class ParticleSolver(Placement, Solver):
         each in a cell drawn with probability ppc_I / Σ ppc, uniform in it (a fixed total, as
         closed walls keep it: the counts are multinomial)."""
         self.cur = 0
-        if exact_uniform:
-            self._place_uniform(int(round(ppc.sum())))
-        elif exact:
-            cdf = ti.field(ti.f64, shape=ppc.size)
+        if exact_uniform or exact:
+            cdf = ti.field(ti.f64, shape=ppc.size)  # each cell's cumulative share (exact)
             cdf.from_numpy(np.cumsum(ppc.ravel()) / max(ppc.sum(), 1e-300))
-            self._place_exact(int(round(ppc.sum())), cdf)
+            self._place(int(round(ppc.sum())), cdf, exact)
         else:
             f = ti.field(ti.f64, shape=self.n)
             f.from_numpy(np.ascontiguousarray(ppc, dtype=np.float64))

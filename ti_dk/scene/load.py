@@ -172,6 +172,8 @@ def _grid_keys(flat: dict[str, Any], ic_name: str) -> GridKeys:
     for r in (r for sides in reservoir for r in sides):
         Key("real", "", **PPC_LIMITS).check("reservoir_ppc", r)
     potential = flat.get("potential", "")
+    if isinstance(potential, (int, float)) and not isinstance(potential, bool):  # --set potential=3: a constant
+        potential = repr(potential)
     if not (isinstance(potential, str) or callable(potential)):
         raise ConfigError(f"potential = {potential!r}: give a formula in x, y, z in quotes")
     try:
