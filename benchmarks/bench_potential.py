@@ -3,8 +3,10 @@ and a 2D trap, with the potential and without (the same start, the same grid), i
 
     python benchmarks/bench_potential.py [--members 2000] [--steps 200]
 
-Prints a Markdown table: seconds per step with and without the potential and their ratio (the
-best of three repeats of ``steps`` steps each, after a first step that compiles the kernels).
+Prints a Markdown table: seconds per step with and without the potential and their ratio: the
+two solvers built side by side, a first step each (compiling), then ``repeats`` rounds that time
+``steps`` steps of one and then of the other, the best round of each (alternating, so that a busy
+machine slows both alike).
 """
 import argparse
 import time
@@ -20,25 +22,28 @@ CASES = {  # name: scene overrides (trap1d's start: the Boltzmann profile of its
 }
 
 
-def step_time(scene, ppc, steps: int) -> float:
-    """Seconds per step (best of three), kernels compiled first."""
-    solver = make_solver(scene, ppc)
-    solver.step(0)
-    ti.sync()
-    best = float("inf")
-    for rep in range(3):
-        t = time.perf_counter()
-        for n in range(steps):
-            solver.step(1 + rep * steps + n)
-        ti.sync()
-        best = min(best, (time.perf_counter() - t) / steps)
+def step_times(scenes, ppc, steps: int, repeats: int) -> list[float]:
+    """Seconds per step of each scene's solver (best round), alternating between them."""
+    solvers = [make_solver(scene, ppc) for scene in scenes]
+    for solver in solvers:
+        solver.step(0)
+    best = [float("inf")] * len(solvers)
+    for rep in range(repeats):
+        for k, solver in enumerate(solvers):
+            ti.sync()
+            t = time.perf_counter()
+            for n in range(steps):
+                solver.step(1 + rep * steps + n)
+            ti.sync()
+            best[k] = min(best[k], (time.perf_counter() - t) / steps)
     return best
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--members", type=int, default=2000)
-    ap.add_argument("--steps", type=int, default=200)
+    ap.add_argument("--steps", type=int, default=100)
+    ap.add_argument("--repeats", type=int, default=7)
     args = ap.parse_args()
     ti_dk.init("cpu")
     print("| case | method | members | with U [ms/step] | without [ms/step] | ratio |")
@@ -47,9 +52,8 @@ def main() -> None:
         for method in ("fv", "gaussian", "particle", "hybrid"):
             members = args.members if case.startswith("1D") else max(1, args.members // 100)
             scene = ti_dk.load_scene("trap1d", method=method, ensemble=members, regrid_interval=0, **kw)
-            ppc = scene.initial_ppc
-            with_u = step_time(scene, ppc, args.steps)
-            without = step_time(scene.replace(potential=""), ppc, args.steps)
+            with_u, without = step_times([scene, scene.replace(potential="")], scene.initial_ppc, args.steps,
+                                         args.repeats)
             print(f"| {case} | {method} | {members} | {1e3 * with_u:.3f} | {1e3 * without:.3f} | "
                   f"{with_u / without:.2f} |", flush=True)
 

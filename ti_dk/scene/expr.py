@@ -44,9 +44,9 @@ def _make(op: str, a: tuple, b: tuple | None = None) -> tuple:
     derivatives stay short."""
     if op == "neg":
         return _num(-a[1]) if a[0] == "num" else (a[1] if a[0] == "neg" else ("neg", a))
-    if a[0] == "num" and b[0] == "num" and op != "pow":
-        return _num({"add": a[1] + b[1], "sub": a[1] - b[1], "mul": a[1] * b[1],
-                     "div": a[1] / b[1] if b[1] else math.nan}[op])
+    if a[0] == "num" and b[0] == "num":
+        with np.errstate(all="ignore"):  # NaN or inf where the formula has none: load.py refuses it
+            return _num(numpy_value((op, a, b), ()))
     if op == "add":
         return b if _is(a, 0) else a if _is(b, 0) else ("add", a, b)
     if op == "sub":
