@@ -320,7 +320,7 @@ def _close_quietly(rf: RunFile, wall: float, error: str) -> None:
 def _renderer(scene: Scene, ppc: np.ndarray, other: Solver | None):
     """What draws this scene's frames: moment profiles in 1D, density panels in 2D and 3D."""
     if scene.grid.dim == 1:
-        from .profiles import ProfileRenderer
+        from ..output.profiles import ProfileRenderer
 
         return ProfileRenderer(scene)
     from ..output.render import Renderer, colour_max
