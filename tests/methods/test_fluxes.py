@@ -122,3 +122,69 @@ def test_the_trap_equilibrium(method):
             for k in KEYS:
                 exact[k][i], ses[k][i] = b[k], s[k]
         check_moments(counts, exact, ses, cells)
+
+
+def _sg_step(q, ubar, dx, dt, boundary, reservoir):
+    """One step of the drift scheme in NumPy, face by face: F = ½ (B(−δ) q_R − B(δ) q_L)/Δx,
+    δ = Ū_R − Ū_L, B(z) = z/(e^z − 1); ``ubar`` on the grid padded by one cell (reservoir cells),
+    periodic axes wrapping, none through Neumann sides."""
+    B = lambda z: np.where(z == 0, 1.0, z / np.where(z == 0, 1.0, np.expm1(z)))  # noqa: E731
+    out = q.copy()
+    inner = tuple(slice(1, -1) for _ in q.shape)
+    for a, (h, (lo, hi), (r_lo, r_hi)) in enumerate(zip(dx, boundary, reservoir)):
+        qm, um = np.moveaxis(q, a, 0), np.moveaxis(ubar[tuple(slice(None) if b == a else s
+                                                               for b, s in enumerate(inner))], a, 0)
+        periodic = lo == "periodic"
+        left = np.concatenate([qm[-1:] if periodic else np.full((1, *qm.shape[1:]), r_lo), qm])
+        right = np.concatenate([qm, qm[:1] if periodic else np.full((1, *qm.shape[1:]), r_hi)])
+        ul = np.concatenate([um[-2:-1] if periodic else um[:1], um[1:-1]])
+        ur = np.concatenate([um[1:-1], um[1:2] if periodic else um[-1:]])
+        d = ur - ul
+        F = 0.5 / h * (B(-d) * right - B(d) * left)
+        if lo == "neumann":
+            F[0] = 0.0
+        if hi == "neumann":
+            F[-1] = 0.0
+        out += np.moveaxis(dt * (F[1:] - F[:-1]) / h, 0, a)
+    return out
+
+
+@pytest.mark.parametrize("cells, boundary", [
+    ((30,), [["dirichlet", "neumann"]]),
+    ((9, 8), [["neumann", "dirichlet"], ["periodic", "periodic"]]),
+    ((5, 6, 7), [["dirichlet", "dirichlet"], ["neumann", "neumann"], ["periodic", "periodic"]]),
+])
+def test_the_mean_follows_the_drift_scheme_face_by_face(cells, boundary):
+    """q̄ with a potential against the Scharfetter–Gummel scheme written face by face in NumPy, every
+    boundary kind on some axis, away from equilibrium."""
+    formula = "3*x - 2*y*y + sin(5*z)"[: {1: 3, 2: 12, 3: 24}[len(cells)]]
+    scene = load_scene("trap1d", method="gaussian", cells=list(cells), boundary=boundary, init="uniform",
+                       reservoir_ppc=[[2.0, 3.0]] * len(cells), potential=formula, ensemble=2)
+    ppc = np.random.default_rng(2).uniform(0.0, 8.0, size=cells)
+    q0, q1 = _mean_after(scene.replace(C=0.1), 6, ppc)
+    grid = Grid.from_scene(scene)
+    ubar = scene.potential.cell_values(grid.cells, grid.lengths, pad=1)
+    q, dt = ppc / grid.cell_volume, 0.1 * min(grid.dx) ** 2
+    for _ in range(6):
+        q = _sg_step(q, ubar, grid.dx, dt, [tuple(b) for b in boundary], grid.reservoir)
+    np.testing.assert_allclose(q1, q, rtol=1e-11, atol=0)
+
+
+@pytest.mark.parametrize("boundary", [[["dirichlet", "neumann"]], "periodic"])
+def test_the_fused_1d_step_carries_the_same_drift(boundary):
+    """fv's per-member 1D kernel and the flux/update kernels the hybrid calls, with a potential:
+    the same states to a few ulp (fast-math may fold the constants of each differently)."""
+    from ti_dk.methods.fv import SPDESolver
+    from ti_dk.core.rng import seed_key
+
+    scene = load_scene("trap1d", cells=[37], boundary=boundary, init="uniform", reservoir_ppc=3.0)
+    grid = Grid.from_scene(scene)
+    a, b = (SPDESolver(grid, scene.dt, 5, key=seed_key(4)) for _ in range(2))
+    ppc = np.random.default_rng(1).uniform(0.0, 40.0, size=37)
+    a.initialize(ppc)
+    for n in range(20):
+        b.q.from_numpy(a.q.to_numpy())
+        a.step(n)
+        b.fluxes(n)
+        b.update()
+        np.testing.assert_allclose(a.q.to_numpy(), b.q.to_numpy(), rtol=1e-12, atol=1e-9)
