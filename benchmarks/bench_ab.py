@@ -30,7 +30,7 @@ def main():
     tmp = tempfile.mkdtemp()
     for name, tree in (("ti_dk_before", args.before), ("ti_dk_after", here)):
         shutil.copytree(os.path.join(tree, "ti_dk"), os.path.join(tmp, name))
-    os.symlink(os.path.join(here, "scenes"), os.path.join(tmp, "scenes"))  # config.SCENE_DIR: next to the package
+    os.symlink(os.path.join(here, "scenes"), os.path.join(tmp, "scenes"))  # schema.scene_dir: a copy under another name has no <name>.scenes, so the folder next to it
     sys.path.insert(0, tmp)
 
     import taichi as ti

@@ -1,11 +1,20 @@
-"""The package as a whole (``ti_dk/__init__.py``): its rooms, their sizes, who imports whom, and the
-README's map of it."""
+"""The package as a whole (``ti_dk/__init__.py``): its rooms, their sizes, who imports whom, the
+map of it in ``docs/where-things-are.md``, and what a wheel ships (the scene files)."""
 import ast
+import os
 import re
+import shutil
+import subprocess
+import sys
 
 import ti_dk
 
 from .helpers import ROOT
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover - exercised on Python 3.10 only
+    import tomli as tomllib
 
 PACKAGE = ROOT / "ti_dk"
 MODULES = sorted(PACKAGE.rglob("*.py"))
@@ -75,6 +84,12 @@ def test_subpackages_and_no_import_circles():
         visit(m, [m])
 
 
+def test_every_import_of_ti_dk_names_a_module_that_exists():
+    missing = [f"{_name(p)}: {m}" for p in MODULES for m in _imports(p)
+               if not ((ROOT / (m.replace(".", "/") + ".py")).exists() or (ROOT / m.replace(".", "/") / "__init__.py").exists())]
+    assert not missing
+
+
 def test_no_module_reaches_into_another_modules_private_names():
     reaches = []
     for path in MODULES:
@@ -84,9 +99,9 @@ def test_no_module_reaches_into_another_modules_private_names():
     assert not reaches
 
 
-def test_readme_layout_names_every_module_once():
-    readme = (ROOT / "README.md").read_text()
-    layout = readme[readme.index("## Layout"):]
+def test_layout_names_every_module_once():
+    page = (ROOT / "docs" / "where-things-are.md").read_text()
+    layout = page[page.index("## Layout"):]
     listed = [line.split()[0] for line in layout.splitlines() if re.match(r"(ti_dk|studies)/\S+\.py", line)]
     tree = sorted(str(p.relative_to(ROOT)) for d in ("ti_dk", "studies") for p in (ROOT / d).rglob("*.py"))
     assert sorted(listed) == tree
@@ -96,3 +111,44 @@ def test_public_api_is_importable_from_the_top():
     for name in ("load_scene", "run", "init", "Scene", "Result", "ConfigError", "SimulationError", "available_scenes"):
         assert getattr(ti_dk, name) is not None
     assert callable(ti_dk.run) and callable(ti_dk.load_scene)  # not shadowed by a subpackage of that name
+
+
+def test_pyproject_ships_every_subpackage_and_the_scene_files():
+    """A wheel holds the subpackages pyproject.toml names: every one under ti_dk/, and the top-level
+    scenes/ folder (its .toml files as package data) as ti_dk.scenes."""
+    tool = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]
+    subpackages = {_name(p) for p in PACKAGE.rglob("__init__.py")}
+    assert set(tool["packages"]) == subpackages | {"ti_dk.scenes"}
+    mapped = ROOT / tool["package-dir"]["ti_dk.scenes"]
+    assert (mapped / "__init__.py").exists() and mapped == ROOT / "scenes"
+    assert tool["package-data"]["ti_dk.scenes"] == ["*.toml"]
+
+
+# how an installed ti_dk finds ti_dk.scenes: setuptools' editable finder maps it to the folder of
+# package-dir; a wheel puts it in site-packages/ti_dk/scenes. Here it maps to a folder of our own.
+_MAPPED_FINDER = """
+import importlib.util, sys
+class Mapped:
+    @classmethod
+    def find_spec(cls, name, path=None, target=None):
+        if name == "ti_dk.scenes":
+            return importlib.util.spec_from_file_location(name, sys.argv[1] + "/__init__.py",
+                                                          submodule_search_locations=[sys.argv[1]])
+sys.meta_path.insert(0, Mapped)  # before an editable install's own finder
+import ti_dk
+from ti_dk.scene import schema
+print(schema.SCENE_DIR, ti_dk.available_scenes(), ti_dk.load_scene("packaged1d").grid.cells)
+"""
+
+
+def test_scene_files_are_found_through_importlib_resources(tmp_path):
+    """With ti_dk.scenes importable (any installed ti_dk), the scenes are that package's files, not
+    the checkout's folder: a package holding one renamed scene lists exactly that one."""
+    data = tmp_path / "scenes"
+    data.mkdir()
+    shutil.copy(ROOT / "scenes" / "__init__.py", data)
+    (data / "packaged1d.toml").write_text((ROOT / "scenes" / "void1d.toml").read_text())
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    out = subprocess.run([sys.executable, "-c", _MAPPED_FINDER, str(data)], cwd=tmp_path, env=env,
+                         capture_output=True, text=True, check=True).stdout.split()
+    assert out == [str(data), "['packaged1d']", "(100,)"]

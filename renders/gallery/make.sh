@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# The README's pictures, from the commands the README shows; run from the repository root.
+# The gallery's pictures (the README shows one; docs/studies.md lists them), from the commands docs/scenes.md shows; run from the repository root.
 #   renders/gallery/make.sh [scenes|figures|all]     (default: all; figures take ~25 min, fig4 ~20 of them)
 set -euo pipefail
 py=${PYTHON:-.venv/bin/python}

@@ -2,6 +2,7 @@
 import math
 
 import numpy as np
+import pytest
 
 from ti_dk.core import theory
 
@@ -104,6 +105,71 @@ def test_linear_scheme_variance_limits():
     assert np.isclose(theory.linear_scheme_variance((10,), (0.1,), 5.0, steps=100000),
                       theory.linear_scheme_variance((10,), (0.1,), 5.0))
     assert theory.linear_scheme_variance((10,), (0.1,), 5.0, steps=0) == 0.0
+
+
+def _laplacian(m):
+    """The periodic 1D second-difference matrix (−2 on the diagonal)."""
+    eye = np.eye(m)
+    return np.roll(eye, 1, 0) + np.roll(eye, -1, 0) - 2 * eye
+
+
+@pytest.mark.parametrize("cells, c", [((10,), (0.3,)), ((4, 6), (0.05, 0.2))])
+def test_linear_structure_factor_is_the_fourier_form_of_the_real_space_covariance(cells, c):
+    """Independent route: the cell counts' covariance iterated in real space, Cov ← A Cov Aᵀ + Q with
+    A = 1 + ½ Σ_a c_a L_a (eq. 10 at D = ½, c_a = Δt/Δx_a²) and Q = ρ Σ_a c_a (−L_a) (each face a
+    count of variance ρ c_a); its DFT's diagonal over ρ M is S(k), and its diagonal's mean is the
+    per-cell variance (the sum rule)."""
+    rho, steps, M = 3.0, 40, math.prod(cells)
+    eyes = [np.eye(m) for m in cells]
+    lap = []
+    for a, m in enumerate(cells):
+        op = np.ones((1, 1))
+        for b, e in enumerate(eyes):
+            op = np.kron(op, _laplacian(m) if b == a else e)
+        lap.append(op)
+    A = np.eye(M) + 0.5 * sum(ca * La for ca, La in zip(c, lap))
+    Q = -rho * sum(ca * La for ca, La in zip(c, lap))
+    cov = np.zeros((M, M))
+    for _ in range(steps):
+        cov = A @ cov @ A.T + Q
+    F = np.fft.fftn(np.eye(M).reshape(M, *cells), axes=tuple(range(1, len(cells) + 1))).reshape(M, M)
+    S = np.real(np.einsum("jk,jl,lk->k", F.conj(), cov, F)).reshape(cells) / (rho * M)
+    assert np.allclose(theory.linear_structure_factor(cells, c, steps), S, rtol=1e-12, atol=1e-12)
+    assert np.isclose(theory.linear_scheme_variance(cells, c, rho, steps), np.diag(cov).mean(), rtol=1e-12)
+
+
+def test_linear_structure_factor_limits():
+    """Δt → 0: the particles' S = 1 (k ≠ 0), off by ≈ s_k ≤ Σ_a c_a; S(0) = 0; no steps: 0; a
+    pooled row is the mean over its steps; many steps: the stationary 1/(1 − s_k)."""
+    for c in (1e-3, 1e-6):
+        S = theory.linear_structure_factor((16, 12), (c, 2 * c))
+        assert S.flat[0] == 0 and np.allclose(S.flat[1:], 1.0, atol=4 * c, rtol=0)
+    S = theory.linear_structure_factor((16,), (0.3,))
+    assert np.isclose(S[8], 1 / (1 - 0.3))  # the Nyquist mode: s = c
+    assert not np.any(theory.linear_structure_factor((16,), (0.3,), 0))
+    pooled = theory.linear_structure_factor((16,), (0.3,), range(5, 30, 4))
+    assert np.allclose(pooled, np.mean([theory.linear_structure_factor((16,), (0.3,), n) for n in range(5, 30, 4)], 0))
+    assert np.allclose(theory.linear_structure_factor((16,), (0.3,), 100000), S)
+
+
+@pytest.mark.parametrize("cells, lengths, ppc", [((12,), (1.0,), 2.3), ((6, 8), (1.0, 2.0), 3.0)])
+def test_particle_structure_factor_sum_rule_and_limits(cells, lengths, ppc):
+    """ρ · mean_k S_n(k) is the per-cell variance of the Poisson-binomial counts (a different route:
+    cumulants of the transition probabilities in real space); S(0) = α(1 − α)/ρ, the total's
+    Bernoulli variance; step 0: nothing has moved; many steps: 1 for k ≠ 0."""
+    dt = 0.1 * (lengths[0] / cells[0]) ** 2
+    alpha = ppc - math.floor(ppc)
+    for n in (1, 5, 40):
+        S = theory.particle_structure_factor(ppc, cells, lengths, dt, n)
+        var = theory.particle_counts_periodic(np.full(cells, ppc), lengths, dt, n)["variance"]
+        assert np.isclose(ppc * S.mean(), var.mean(), rtol=1e-9)
+        assert np.isclose(S.flat[0], alpha * (1 - alpha) / ppc, rtol=1e-9, atol=1e-12)
+    assert np.allclose(theory.particle_structure_factor(ppc, cells, lengths, dt, 0), alpha * (1 - alpha) / ppc,
+                       rtol=0, atol=1e-15)
+    late = theory.particle_structure_factor(ppc, cells, lengths, dt, 20000)
+    assert np.allclose(late.flat[1:], 1.0, atol=1e-9)
+    uniform = theory.particle_structure_factor(ppc, cells, lengths, dt)
+    assert uniform.flat[0] == 0 and np.all(uniform.flat[1:] == 1)
 
 
 def test_hybrid_mean_reduces_to_its_two_methods_and_conserves_mass():

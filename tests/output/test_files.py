@@ -110,3 +110,45 @@ def test_run_file_rows_and_attributes(tmp_path):
     with h5py.File(rf.path) as f:
         assert f["stats/time"][:].tolist() == [0.0, 0.5] and f["stats/histogram"].shape == (2, 4, 4)
         assert json.loads(f.attrs["timing"]) == {"io": 1.0} and f.attrs["complete"]
+
+
+def _datasets(f):
+    found = []
+    f.visititems(lambda name, obj: found.append(name) if isinstance(obj, h5py.Dataset) else None)
+    return found
+
+
+def test_every_dataset_states_its_units_and_one_member_omits_the_ensemble_only_moments(tmp_path):
+    """A one-member hybrid run beside fv, with frames and a histogram: every dataset has a ``units``
+    attribute, the documented conventions hold (mean per unit volume: the initial particles per
+    cell over the cell volume; mass: particles), and the ensemble-only moments are named and left
+    out; an ensemble run writes them and sums its diagnostics over the members."""
+    from ti_dk.output.files import RunFile
+    from ti_dk.output.units import UNITS
+
+    scene = load_scene("ellipse2d", cells=[16, 16], t_end=0.0005, output_times=[0.0], histogram=[0, 40])
+    res = run(scene, out=tmp_path, snapshots=False)
+    with h5py.File(res.path) as f:
+        names = _datasets(f)
+        assert {"diagnostics/compare_mass", "regrid/created", "frames/negative_cells", "stats/histogram"} <= set(names)
+        assert all("units" in f[n].attrs for n in names), [n for n in names if "units" not in f[n].attrs]
+        assert f["diagnostics/mass"].attrs["units"] == "particles (sum over members)"
+        assert "non-excess" in UNITS["stats/kurtosis"]
+        assert f["diagnostics/compare_mass"].attrs["units"] == "particles (sum over members); of the compared method"
+        st = f["stats"]
+        assert st.attrs["ensemble_only"] == "variance skewness kurtosis" == st.attrs["omitted"]
+        assert "variance" not in st and "kurtosis" not in st
+        vol = st.attrs["cell_volume"]
+        assert np.allclose(st["mean"][0] * vol, scene.initial_ppc)  # t = 0: per unit volume
+        assert np.isclose(f["diagnostics/mass"][-1], res.final_density.sum() * vol)  # particles
+    doc = RunFile.__doc__
+    assert all(k.split("/")[1] in doc for k in UNITS) and "ensemble_only" in doc and "non-excess" in doc
+
+    scene = load_scene("void1d", ensemble=3, cells=[20], t_end=0.0005)
+    res = run(scene, out=tmp_path / "e", frames=False)
+    with h5py.File(res.path) as f:
+        assert f["stats"].attrs["omitted"] == "" and {"variance", "skewness", "kurtosis"} <= set(f["stats"])
+        assert f["stats/kurtosis"].attrs["units"] == UNITS["stats/kurtosis"]
+        mass = f["diagnostics/mass"][-1]
+        assert np.isclose(mass, res.final_density.sum() * scene.grid.cell_volume)  # all three members
+        assert mass > 2.5 * res.final_density[0].sum() * scene.grid.cell_volume

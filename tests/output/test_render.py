@@ -1,6 +1,6 @@
 """Frames read back pixel by pixel: density colours, negative cells inside their own cell, axes and
-ticks, region outlines on the darkest and brightest colours, one colour bar, the 3D volume panel,
-and the MP4 a run writes beside its file."""
+ticks, region outlines on the darkest and brightest colours, the region's boxes and its holes,
+boundary labels, one colour bar, the 3D volume panel, and the MP4 a run writes beside its file."""
 import subprocess
 import sys
 
@@ -9,7 +9,9 @@ import matplotlib
 import numpy as np
 import pytest
 
-from ti_dk.output.render import Panel, Renderer, colour_max, outline, time_label
+from ti_dk import load_scene
+from ti_dk.output.render import (BOX, Panel, Renderer, box_edges, colour_max, dirichlet_ppc, holes, outline,
+                                 side_labels, time_label)
 
 VIRIDIS = matplotlib.colormaps["viridis"]
 
@@ -112,8 +114,93 @@ def test_colour_range_and_time_label():
     assert colour_max(np.array([0.0, 30.0])) == 50.0  # 30 + 3√30 = 46.4, up to a multiple of 5
     assert colour_max(np.array([4.0])) == 10.0
     assert colour_max(np.zeros(3)) == 1.0
+    assert colour_max(np.array([30.0]), [40.0, 0.0]) == 60.0  # a 40-per-cell reservoir: 40 + 3√40 = 59.0
     assert time_label(0.00096035) == r"$t = 9.60\times10^{-4}\ L^2/2D$"
-    assert time_label(0.0) == r"$t = 0$" and time_label(2.5) == r"$t = 2.50\ L^2/2D$"
+    assert time_label(0.0) == r"$t = 0\ L^2/2D$" and time_label(2.5) == r"$t = 2.50\ L^2/2D$"
+
+
+def test_colour_range_and_side_labels_of_a_scene():
+    walled = dict(cells=[16, 16], boundary=[["dirichlet", "neumann"], "periodic"], reservoir_ppc=[[40, 5], 0])
+    r = Renderer.of(load_scene("ellipse2d", **walled))  # initial density 30 at most, reservoir 40
+    assert r.vmax == 60.0 and r.rows == 1
+    assert r.sides == (("dirichlet ρ=40/cell", "neumann"), ("periodic", "periodic"))
+    assert Renderer.of(load_scene("ellipse2d", color_max=80.0, **walled), compared=True).vmax == 80.0
+    assert Renderer.of(load_scene("ellipse2d", cells=[16, 16])).vmax == 50.0  # no reservoir: from the initial 30
+    assert dirichlet_ppc([["dirichlet", "dirichlet"], ["neumann", "periodic"]], [[3.0, 7.0], [9.0, 9.0]]) == [3.0, 7.0]
+    assert side_labels([["periodic", "periodic"]], [[0.0, 0.0]]) == (("periodic", "periodic"),)
+
+
+def test_boundary_kinds_are_written_beside_each_side():
+    n = 32
+    sides = (("dirichlet ρ=40/cell", "neumann"), ("periodic", "periodic"))
+    ppc = np.full((n, n), 5.0)
+    plain, labelled = (Renderer((n, n), (1.0, 1.0), 1, 10.0, "test", s) for s in (None, sides))
+    a, b = (r.frame(0.0, [Panel("fv", ppc)]).astype(int) for r in (plain, labelled))
+    x0, y0, w, h = labelled.pixels[0][0]
+    differ = np.abs(a - b).max(axis=-1) > 60
+    assert not differ[y0:y0 + h, x0:x0 + w].any()  # nothing drawn over the density
+    below = differ[y0 + h + 18:y0 + h + 32]  # the line of the axis label, under the tick labels
+    assert below[:, x0:x0 + w // 3].sum() > 40 and below[:, x0 + 2 * w // 3:x0 + w].sum() > 20  # both ends
+    assert not below[:, x0 + w // 3 + 20:x0 + 2 * w // 3 - 20].any()  # the middle keeps the axis name alone
+    left = differ[y0:y0 + h, x0 - 42:x0 - 26]  # left of the y tick labels
+    assert left[:h // 3].sum() > 20 and left[2 * h // 3:].sum() > 20  # top and bottom ends
+
+
+def _red(px):
+    """Pixels close to the boxes' colour (a red none of viridis's colours is near)."""
+    return np.abs(np.asarray(px, dtype=int) - _rgb(BOX["color"])).max(axis=-1) < 60
+
+
+# a ring of four boxes round a hole of 8 x 10 cells, on a 32 x 32 grid (cells (i, j), j upwards)
+RING = [((4, 4), (28, 10)), ((4, 10), (10, 20)), ((18, 10), (28, 20)), ((4, 20), (28, 26))]
+
+
+def test_boxes_are_drawn_inside_the_region_and_holes_are_dotted():
+    n, vmax = 32, 40.0
+    r = Renderer((n, n), (1.0, 1.0), 1, vmax, "test")
+    ppc = np.full((n, n), 2 * vmax)  # the brightest colour everywhere: lines are what is not yellow
+    img = r.frame(0.0, [Panel("hybrid", ppc, RING)]).astype(int)
+    x0, y0, w, h = r.pixels[0][0]
+    s = w / n  # pixels per cell
+    X = lambda i: round(x0 + i * s)  # noqa: E731  image column of the cell edge x = i
+    Y = lambda j: round(y0 + h - j * s)  # noqa: E731  image row of the cell edge y = j
+    # box sides inside the region: y = 10 between the lowest box and the side ones, y = 20 between
+    # the side ones and the top one
+    for j, (i0, i1) in ((10, (4, 10)), (10, (18, 28)), (20, (4, 10)), (20, (18, 28))):
+        for x in np.linspace(X(i0) + 0.3 * s, X(i1) - 0.3 * s, 6).round().astype(int):
+            assert _red(img[Y(j) - 2:Y(j) + 3, x]).any(), (j, x)
+    assert not _red(_cell(r, img, 7, 15, n)).any() and not _red(_cell(r, img, 15, 7, n)).any()  # not filled
+    assert not _red(img[y0:y0 + h, x0:X(3)]).any()  # nothing outside the region
+
+    def darkest(j, i0, i1):  # per column along the edge y = j (its ends left out): the darkest pixel
+        cols = range(X(i0) + round(s), X(i1) - round(s))
+        return np.array([_lum(img[Y(j) - 3:Y(j) + 4, x]).min() for x in cols])
+
+    outer, hole = darkest(4, 4, 28), darkest(10, 10, 18)  # the region's lower edge; the hole's
+    assert outer.max() < 90  # a continuous black line
+    assert 0.2 < (hole < 90).mean() < 0.8 and hole.max() > 200  # black dots on white
+    assert not _red(img[Y(10) - 1:Y(10) + 2, X(10) + round(s):X(18) - round(s)]).any()  # no box line there
+    assert "holes dotted" in r.axes[0][0].get_title() and "particles per cell" in r.header.get_text()
+
+
+def test_holes_and_box_edges_from_a_mask_set_by_hand():
+    m = np.zeros((8, 7), dtype=bool)
+    m[1:6, 1:6] = True
+    m[2:4, 2:4] = False  # a 2 x 2 hole ...
+    m[4, 5] = False  # ... and a notch open to the outside (through the cell (4, 6))
+    expect = np.zeros_like(m)
+    expect[2:4, 2:4] = True
+    assert np.array_equal(holes(m), expect)
+    assert not holes(np.ones((4, 4), bool)).any() and not holes(np.zeros((4, 4), bool)).any()
+    edge = np.ones((5, 5), bool)
+    edge[0, 2] = False  # on the domain's edge: not a hole
+    assert not holes(edge).any()
+    segs = box_edges([((1, 2), (3, 5))], (0, 1), (0.5, 0.25))
+    assert np.allclose(segs[0], [[0.5, 0.5], [1.5, 0.5]]) and len(segs) == 4
+    assert np.isclose(np.abs(segs[:, 1] - segs[:, 0]).sum(), 2 * (1.0 + 0.75))  # the box's perimeter
+    boxes3 = [((0, 0, 2), (4, 4, 6)), ((0, 0, 6), (4, 4, 8))]
+    assert len(box_edges(boxes3, (0, 1), (1.0,) * 3, cut=2, at=5)) == 4  # only the first holds layer 5
+    assert len(box_edges(boxes3, (0, 2), (1.0,) * 3, cut=1, at=3)) == 8
 
 
 def _spheres(n, inner):

@@ -123,6 +123,8 @@ HOSTILE = [  # (argv, exit status, what the one line must say)
     (V + ["--set", "threshold=0"], 2, "threshold = 0.0"),
     (V + ["--set", "min_box=2", "--set", "max_box=2"], 2, "max_box = 2"),
     (V + ["--set", "movie_frames=0"], 2, "movie_frames = 0"),
+    (E + ["--set", "color_max=-1"], 2, "color_max = -1.0"),
+    (E + ["--set", "color_max=lots"], 2, "color_max = 'lots': give a number"),
     (V + ["--set", "regrid_interval=-1"], 2, "regrid_interval = -1"),
     (V + ["--set", "bogus=1"], 2, "unknown key 'bogus'"),
     (V + ["--set", "C"], 2, "write KEY=VALUE"),

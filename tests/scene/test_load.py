@@ -83,7 +83,7 @@ def test_parse_value():
 
 def test_every_key_declared_once_with_doc_and_defaults_from_regrid():
     from ti_dk.scene.schema import INIT_KEYS, KEYS, SECTIONS, Scene
-    from ti_dk.scene.load import keys_help
+    from ti_dk.scene.schema import keys_help
     from ti_dk.hybrid.regrid import RegridParams
 
     fields = [f.metadata.get("flat") or f.name for cls in (*SECTIONS.values(), Scene)
@@ -92,7 +92,7 @@ def test_every_key_declared_once_with_doc_and_defaults_from_regrid():
     assert all(k.doc for k in KEYS.values())
     help_text = keys_help()
     assert all(f"  {name} " in help_text for name in KEYS)
-    assert help_text in (ROOT / "README.md").read_text()  # the README's key list
+    assert help_text in (ROOT / "docs" / "scenes.md").read_text()  # the documented key list
     s, rg = load_scene("ellipse2d", threshold=RegridParams().threshold), RegridParams()
     assert (s.hybrid.buffer, s.hybrid.grid_efficiency, s.hybrid.min_box, s.hybrid.max_box) == (rg.buffer, rg.efficiency, rg.min_box, rg.max_box)
     assert HybridKeys().threshold == rg.threshold

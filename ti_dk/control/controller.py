@@ -96,6 +96,7 @@ def _run(scene: Scene, outputs: Outputs | None, opts: RunOptions) -> Result:
                 bar.stepped(n + 1)
         if opts.movie:
             ctl.make_movie()
+        ctl.draw_structure_factor()
     except OverflowError as exc:
         if ctl.rf:
             ctl.rf.close(time.perf_counter() - wall0, error=str(exc))
@@ -131,6 +132,9 @@ class Controller:
         frames = outputs is not None and (opts.frames is not False or opts.movie)
         steps = _frame_steps(scene, frames, opts.movie)
         self.statistics = Statistics(scene, solver, self.rf, prog, steps if frames and scene.grid.dim == 1 else ())
+        sampled = scene.method.ensemble > 1 or scene.stats.t_equil is not None  # rows with a variance
+        # where the last row's S(k) is drawn at the end, or None
+        self.spectrum_png = outputs.structure_factor if frames and scene.stats.structure_factor and sampled else None
         self.diagnostics = Diagnostics(self.rf, prog.diag, self.statistics)
         writer = _frame_writer(outputs, scene, other) if frames else None
         self.frames = Frames(scene, solver, other, writer, steps, prog.frames, self.statistics)
@@ -145,7 +149,8 @@ class Controller:
     def _written(self) -> dict[str, Path]:
         where = {"statistics and diagnostics": self.rf and self.rf.path,
                  "frames": self.frames.writer and self.frames.writer.dir,
-                 "openPMD snapshots": self.snapshots.directory, "checkpoint": self.checkpoints.path}
+                 "openPMD snapshots": self.snapshots.directory, "checkpoint": self.checkpoints.path,
+                 "structure factor": self.spectrum_png}
         return {what: path for what, path in where.items() if path}
 
     def advance(self, n: int) -> None:
@@ -183,6 +188,16 @@ class Controller:
         if self.frames.writer:
             t0 = time.perf_counter()
             self.written["movie"] = self.frames.writer.movie(self.outputs.movie)
+            self.clock.add("render", t0)
+
+    def draw_structure_factor(self) -> None:
+        """The last row's S(k) against its exact answer (:mod:`ti_dk.output.spectra`)."""
+        st = self.statistics
+        if self.spectrum_png and st.rows:
+            from ..output.spectra import draw_structure_factor
+
+            t0 = time.perf_counter()
+            draw_structure_factor(self.spectrum_png, self.scene, st.rows[-1], st.row_steps(self.scene.n_steps))
             self.clock.add("render", t0)
 
     def finish(self, wall: float) -> Result:
@@ -254,7 +269,7 @@ def _frame_writer(outputs: Outputs, scene: Scene, other: Solver | None):
     """The frame writer of this scene: moment profiles in 1D, density panels in 2D and 3D."""
     from ..output.render import FrameWriter
 
-    return FrameWriter(outputs.frames, _renderer(scene, scene.initial_ppc, other))
+    return FrameWriter(outputs.frames, _renderer(scene, other))
 
 
 def summary(result: Result) -> str:
@@ -317,16 +332,12 @@ def _close_quietly(rf: RunFile, wall: float, error: str) -> None:
         pass
 
 
-def _renderer(scene: Scene, ppc: np.ndarray, other: Solver | None):
+def _renderer(scene: Scene, other: Solver | None):
     """What draws this scene's frames: moment profiles in 1D, density panels in 2D and 3D."""
     if scene.grid.dim == 1:
         from ..output.profiles import ProfileRenderer
 
         return ProfileRenderer(scene)
-    from ..output.render import Renderer, colour_max
+    from ..output.render import Renderer
 
-    methods = scene.method.name + (f" (left) and {scene.method.compare} (right)" if other and scene.grid.dim == 2 else
-                              f" (top) and {scene.method.compare} (bottom)" if other else "")
-    return Renderer(scene.grid.cells, scene.grid.lengths, 1 + bool(other), colour_max(ppc),
-                    f"{scene.name}: {methods}, {'×'.join(map(str, scene.grid.cells))} cells, member 0")
-
+    return Renderer.of(scene, compared=other is not None)

@@ -143,7 +143,7 @@ def _merge(scene: Scene, parts: list[dict], outputs: Outputs | None, wall: float
     hist = scene.stats.histogram
     rows = []
     for i in range(len(parts[0]["rows"])):
-        cs = CellStats(scene.grid.cells, scene.grid.cell_volume, hist)
+        cs = CellStats(scene.grid.cells, scene.grid.cell_volume, hist, scene.stats.structure_factor)
         for p in parts:
             cs.merge_row(p["rows"][i])
         rows.append(cs.row())

@@ -61,7 +61,8 @@ class Clock:
 class Statistics:
     """Statistics rows over the ensemble at ``scene.output_steps`` (and at ``extra_steps``, rows only
     drawn by 1D frames); a stationary scene pools every ``sample_every``-th step after ``t_equil``
-    into one row at the end."""
+    into one row at the end. With ``stats.structure_factor`` the rows carry S(k)
+    (:mod:`ti_dk.core.spectra`)."""
 
     part = "statistics"
 
@@ -73,7 +74,7 @@ class Statistics:
         self.stationary = scene.stats.t_equil is not None
         self.n_equil = round(scene.stats.t_equil / scene.dt) if self.stationary else 0  # first pooled step
         # stationary runs: the pooled samples
-        self.pooled = CellStats(scene.grid.cells, scene.grid.cell_volume, scene.stats.histogram)
+        self.pooled = self._cell_stats()
         if prog.pooled:
             self.pooled.load_state(prog.pooled)
         self.latest: tuple[int | None, dict | None] = (None, None)  # (step, row) of the last row taken
@@ -95,7 +96,7 @@ class Statistics:
                 self.pooled.add(self.solver.density())
             row = self.pooled.row() if n == sc.n_steps else None
         else:
-            cs = CellStats(sc.grid.cells, sc.grid.cell_volume, sc.stats.histogram)
+            cs = self._cell_stats()
             cs.add(self.solver.density())
             row = cs.row()
         self.latest = (n, row)
@@ -104,6 +105,16 @@ class Statistics:
             self.times.append(n * sc.dt)
             if self.rf:
                 self.rf.write_row(n * sc.dt, row)
+
+    def _cell_stats(self) -> CellStats:
+        sc = self.scene
+        return CellStats(sc.grid.cells, sc.grid.cell_volume, sc.stats.histogram, sc.stats.structure_factor)
+
+    def row_steps(self, n: int) -> int | range:
+        """The steps whose samples make the row of step ``n``: ``n``, or those pooled up to it."""
+        if not self.stationary:
+            return n
+        return range(self.n_equil, n + 1, self.scene.stats.sample_every)
 
     def row_at(self, n: int) -> dict | None:
         """The row taken at step ``n``, if one was."""

@@ -145,15 +145,37 @@ def check_stop(where: str = " before the first step", rf=None, checkpoint: Path 
 
 @dataclass(frozen=True)
 class Stats:
-    """Per-row, per-cell statistics; mean and variance in number density (particles per volume)."""
+    """Per-row, per-cell statistics of a run: one row per output time (one pooled row for a
+    stationary run), over the ensemble's members (and time samples).
+
+    Attributes
+    ----------
+    mean : numpy.ndarray
+        ``(rows, *cells)``, number density [particles / L^d]; times ``cell_volume`` gives
+        particles per cell.
+    variance : numpy.ndarray
+        ``(rows, *cells)`` [1 / L^(2d)].
+    skewness : numpy.ndarray
+        ``(rows, *cells)``, dimensionless.
+    kurtosis : numpy.ndarray
+        ``(rows, *cells)``, kurtosis, not excess (3 for a Gaussian, as in the paper's Fig. 3), dimensionless.
+    n_samples : numpy.ndarray
+        ``(rows,)``: densities pooled into each row (members × time samples).
+    histogram : numpy.ndarray or None
+        ``(rows, *cells, bins)``: counts of particles per cell in one-particle bins from
+        ``hist_lo`` (only with the scene key ``histogram``).
+    hist_lo : int or None
+        The particle count of the first histogram bin.
+    """
 
     mean: np.ndarray  # (rows, *cells) [1/volume]
     variance: np.ndarray  # (rows, *cells) [1/volume²]
     skewness: np.ndarray  # (rows, *cells), dimensionless
-    kurtosis: np.ndarray  # (rows, *cells), excess, dimensionless
+    kurtosis: np.ndarray  # (rows, *cells), non-excess (3 for a Gaussian: Moments.kurtosis), dimensionless
     n_samples: np.ndarray  # (rows,) densities pooled into each row (members × time samples)
     histogram: np.ndarray | None = None  # particles per cell, bins hist_lo … (one particle wide)
     hist_lo: int | None = None  # the particle count of the first histogram bin
+    structure_factor: np.ndarray | None = None  # (rows, *half cells) S(k), dimensionless (ti_dk.core.spectra)
 
 
 def stats_of(rows: list[dict], hist: tuple[int, int] | None) -> Stats:
@@ -161,12 +183,49 @@ def stats_of(rows: list[dict], hist: tuple[int, int] | None) -> Stats:
     stack = {k: np.stack([r[k] for r in rows]) for k in rows[0] if not k.startswith("acc_")}
     return Stats(mean=stack["mean"], variance=stack["variance"], skewness=stack["skewness"],
                  kurtosis=stack["kurtosis"], n_samples=stack["n_samples"], histogram=stack.get("histogram"),
-                 hist_lo=hist[0] if hist else None)
+                 hist_lo=hist[0] if hist else None, structure_factor=stack.get("structure_factor"))
 
 
 @dataclass(frozen=True)
 class Result:
-    """What a run returns: its statistics, per-step diagnostics, final densities and where its files are."""
+    """What :func:`ti_dk.run` returns: its statistics, per-step diagnostics, final densities and
+    where its files are. Densities are number densities (particles per unit volume, L^-d); times
+    in L²/(2D) (D = ½).
+
+    Attributes
+    ----------
+    scene : Scene
+        The scene that ran (validated, with every default filled in).
+    times : numpy.ndarray
+        The time of each statistics row, ``(rows,)``.
+    cell_volume : float
+        V_c [L^d]: multiply a density by it for particles per cell.
+    stats : Stats
+        Per-cell mean, variance, skewness, kurtosis (3 for a Gaussian) at each row, ``(rows, *cells)``.
+    diagnostics : dict of str to numpy.ndarray
+        Per step, summed or taken over all members: ``time``, ``mass`` (particles),
+        ``min_density``, ``negative_cells``, ``clamped_steps``, ``boundary_inflow``; the hybrid
+        adds ``particles`` and ``regrid_change``, a compared method ``compare_*``.
+    final_density : numpy.ndarray
+        Every member's density at the end, ``(ensemble, *cells)``.
+    wall_time : float
+        Seconds the run took.
+    regrids : list of dict
+        Hybrid: one record per regrid (``step``, ``boxes``, ``covered_cells``, ``efficiency``,
+        ``created``, ``removed``, ``on_demand``), as in ``/regrid`` of the run file.
+    timing : dict of str to float
+        Seconds per part of the run (setup, compile, regrid, spde, particles, statistics, …).
+    frames : list of pathlib.Path
+        The PNG frames written.
+    written : dict of str to pathlib.Path
+        Every file or folder written, by what it holds.
+    rows : list of dict
+        The statistics rows with their moment accumulators (to merge ensembles exactly).
+    chunks : dict
+        Distributed runs: the chunk count and the chunks that were retried.
+    path : pathlib.Path or None
+        The run file (``OUT/<name>_<method>.h5``), if one was written.
+    """
 
     scene: Scene  # the scene that ran
     times: np.ndarray  # the time of each statistics row

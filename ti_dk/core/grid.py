@@ -89,9 +89,8 @@ def exclusive_scan(a: ti.template(), e, n):
 
     Call it from a loop under ``ti.loop_config(serialize=True)``, as every short loop of a kernel
     (over a few members) should be: a parallel loop is a task of Taichi's CPU thread pool, whose
-    start and end cost about 65 µs on the project's 2-core VM whatever the loop does (measured,
-    Taichi 1.7.4: a kernel of four one-iteration loops 200–240 µs, serialized 12 µs), and a
-    hybrid step runs some twenty of them."""
+    start and end cost tens of microseconds whatever the loop does, and a hybrid step runs some
+    twenty of them (launch costs: ``benchmarks/RESULTS.md``)."""
     total = 0
     for k in range(n):
         c = a[e, k]

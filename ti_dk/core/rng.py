@@ -51,12 +51,10 @@ def seed_key(seed: int) -> tuple[int, int]:
 def lanes(dim: int) -> int:
     """Philox calls one iteration of a walk or flux loop makes before it uses them, in ``dim``
     dimensions: 2 in 3D, where a counter serves one particle or cell, and 1 in 1D and 2D, where it
-    already serves 2–4. A call is about 60 cycles of dependent multiplies, so with one at a time
-    the loop waits on it and two independent ones run side by side in the core: walk3d 48 → 38 ns
-    a particle on one Zen 3 thread, the 3D flux pass −10 % (sphere3d, 2 threads); four gained no
-    more. In 2D two lanes gained nothing (ellipse2d) and the 1D ensemble step lost 25 %, and every
-    lane is a copy of the loop body to compile (18 solver kinds: 121 → 164–180 s with lanes in all
-    dimensions)."""
+    already serves 2–4. A call is a chain of dependent multiplies, so with one at a time the loop
+    waits on it, and two independent ones run side by side in the core. That paid in 3D (walk and
+    flux pass); in 1D and 2D it gained nothing or lost, and every lane is a copy of the loop body
+    to compile (the LANES measurements in ``benchmarks/RESULTS.md``)."""
     return 2 if dim == 3 else 1
 
 

@@ -1,7 +1,10 @@
-"""Streaming per-cell statistics: central moments to 4th order and one-particle-wide histograms."""
+"""Streaming per-cell statistics: central moments to 4th order, one-particle-wide histograms and the
+structure factor S(k) of the counts."""
 from __future__ import annotations
 
 import numpy as np
+
+from .spectra import half_shape
 
 
 class Moments:
@@ -50,6 +53,13 @@ class Moments:
         self.mean = self.mean + delta * nb / n
         self.n = n
 
+    def state(self) -> dict[str, np.ndarray]:
+        """The accumulator as arrays (for checkpoints and merging rows)."""
+        return {"n": np.int64(self.n), "mean": self.mean, "m2": self.m2, "m3": self.m3, "m4": self.m4}
+
+    def load_state(self, st: dict[str, np.ndarray]) -> None:
+        self.n, self.mean, self.m2, self.m3, self.m4 = int(st["n"]), st["mean"], st["m2"], st["m3"], st["m4"]
+
     @property
     def variance(self) -> np.ndarray:
         """Unbiased sample variance, M2 / (n − 1)."""
@@ -89,33 +99,61 @@ class Histogram:
         self.outside += (~inside).sum(axis=0)
 
 
-class CellStats:
-    """Moments (number density) and optional histogram (particles per cell) for one output row."""
+class StructureFactor:
+    """Streaming S(k) over samples of the number density (the definition: :mod:`ti_dk.core.spectra`)."""
 
-    def __init__(self, shape: tuple[int, ...], cell_volume: float, histogram: tuple[int, int] | None = None):
+    def __init__(self, cells: tuple[int, ...], cell_volume: float):
+        self.cells = tuple(cells)
+        self.cell_volume = cell_volume  # V_c: density → particle count
+        self.moments = Moments((2, *half_shape(self.cells)))  # real and imaginary parts of N̂_k
+
+    def add(self, density: np.ndarray) -> None:
+        """Add samples of the number density, shaped ``(samples, *cells)``."""
+        counts = np.asarray(density, dtype=np.float64) * self.cell_volume
+        nk = np.fft.rfftn(counts, axes=tuple(range(1, counts.ndim)))
+        self.moments.add(np.stack([nk.real, nk.imag], axis=1))
+
+    def value(self) -> np.ndarray:
+        """S(k) on the kept modes (NaN with no particles on average; 0 with fewer than 2 samples)."""
+        total = self.moments.mean[(0,) * self.moments.mean.ndim]  # ⟨N̂_0⟩ = ⟨N_total⟩
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return self.moments.variance.sum(axis=0) / total
+
+
+class CellStats:
+    """Moments (number density), optional histogram (particles per cell) and optional structure
+    factor (:class:`StructureFactor`) for one output row."""
+
+    def __init__(self, shape: tuple[int, ...], cell_volume: float, histogram: tuple[int, int] | None = None,
+                 structure_factor: bool = False):
         self.cell_volume = cell_volume
         self.moments = Moments(shape)
         self.histogram = Histogram(shape, *histogram) if histogram else None
+        self.spectrum = StructureFactor(shape, cell_volume) if structure_factor else None  # S(k), or None
 
     def add(self, density: np.ndarray) -> None:
         """Add samples of the number density, shaped ``(samples, *cells)``."""
         self.moments.add(density)
         if self.histogram is not None:
             self.histogram.add(density * self.cell_volume)
+        if self.spectrum is not None:
+            self.spectrum.add(density)
 
     def state(self) -> dict[str, np.ndarray]:
         """Everything needed to resume accumulating (for checkpoints)."""
-        m = self.moments
-        st = {"n": np.int64(m.n), "mean": m.mean, "m2": m.m2, "m3": m.m3, "m4": m.m4}
+        st = self.moments.state()
         if self.histogram is not None:
             st |= {"hist_counts": self.histogram.counts, "hist_outside": self.histogram.outside}
+        if self.spectrum is not None:
+            st |= {f"sf_{k}": v for k, v in self.spectrum.moments.state().items()}
         return st
 
     def load_state(self, st: dict[str, np.ndarray]) -> None:
-        m = self.moments
-        m.n, m.mean, m.m2, m.m3, m.m4 = int(st["n"]), st["mean"], st["m2"], st["m3"], st["m4"]
+        self.moments.load_state(st)
         if self.histogram is not None:
             self.histogram.counts, self.histogram.outside = st["hist_counts"], st["hist_outside"]
+        if self.spectrum is not None:
+            self.spectrum.moments.load_state({k[3:]: v for k, v in st.items() if k.startswith("sf_")})
 
     def row(self) -> dict[str, np.ndarray]:
         m = self.moments
@@ -124,14 +162,18 @@ class CellStats:
         if self.histogram is not None:
             row["histogram"] = self.histogram.counts
             row["histogram_outside"] = self.histogram.outside
+        if self.spectrum is not None:
+            row["structure_factor"] = self.spectrum.value()
         return row | {f"acc_{k}": v for k, v in self.state().items()}  # to merge rows of member chunks
 
     def merge_row(self, row: dict[str, np.ndarray]) -> None:
         """Add the accumulators carried by another row (Pébay merge; histograms add)."""
         other = CellStats(self.moments.mean.shape, self.cell_volume,
-                          (self.histogram.lo, self.histogram.hi) if self.histogram else None)
+                          (self.histogram.lo, self.histogram.hi) if self.histogram else None, self.spectrum is not None)
         other.load_state({k[4:]: v for k, v in row.items() if k.startswith("acc_")})
         self.moments.merge(other.moments)
         if self.histogram is not None:
             self.histogram.counts = self.histogram.counts + other.histogram.counts
             self.histogram.outside = self.histogram.outside + other.histogram.outside
+        if self.spectrum is not None:
+            self.spectrum.moments.merge(other.spectrum.moments)

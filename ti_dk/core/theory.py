@@ -90,23 +90,38 @@ def cell_transition(cells: int, length: float, dt: float, steps: int, clamp: boo
     ``2 erfc(Δx/√(2Δt))``) raised to the n is below 1e-16. Rows sum to 1; one step is exact to
     ~4e-6 (the series of a density with jumps), a few steps to round-off.
     """
+    folded = walk_symbol(cells, length, dt, [steps], clamp, fold)[0]
+    row = np.real(np.fft.ifft(folded))  # P as a function of d = i − j (cells·Δx/L = 1)
+    d = (np.arange(cells)[None, :] - np.arange(cells)[:, None]) % cells
+    return np.maximum(row[d], 0.0)
+
+
+def walk_symbol(cells: int, length: float, dt: float, steps, clamp: bool = True, fold: int = 64) -> np.ndarray:
+    r"""``P̂[i, m]``: the discrete Fourier transform over the ``cells`` cells of the periodic 1D
+    transition row of :func:`cell_transition` after ``steps[i]`` steps,
+
+    .. math:: \hat P_n(m) = \sum_{m' ≡ m \,(\mathrm{mod}\, M)} \operatorname{sinc}^2(k_{m'} Δx/2)\, φ(k_{m'})^n,
+
+    the modes of the Fourier series folded onto the grid's M wave numbers (the same modes as
+    :func:`cell_transition` keeps for the fewest steps asked). Real: the step is symmetric.
+    """
+    steps = np.atleast_1d(np.asarray(steps, dtype=np.int64))
     h = length / cells
     M = fold * cells
+    n_min = int(steps.min())
     bound = 2 * math.erfc(h / math.sqrt(2 * dt)) if clamp else 0.0  # |φ(k)| ≤ exp(−k²Δt/2) + bound
-    if bound**steps < 1e-16:  # then modes past exp(−n k²Δt/2) = 1e-20 weigh nothing
-        M = min(M, math.ceil(math.sqrt(2 * 20 * math.log(10) / (steps * dt)) * length / (2 * math.pi)) + 1)
+    if n_min > 0 and bound**n_min < 1e-16:  # then modes past exp(−n k²Δt/2) = 1e-20 weigh nothing
+        M = min(M, math.ceil(math.sqrt(2 * 20 * math.log(10) / (n_min * dt)) * length / (2 * math.pi)) + 1)
     m = np.arange(-M, M + 1)
     k = 2 * np.pi * m / length
     if clamp:  # φ is even: evaluate it on m ≥ 0
         phi = clamped_step_cf(k[m >= 0], dt, h)[np.abs(m)]
     else:
         phi = np.exp(-0.5 * k * k * dt)
-    w = np.sinc(k * h / (2 * np.pi)) ** 2 * phi**steps  # np.sinc(x) = sin(πx)/(πx)
-    folded = np.zeros(cells)
-    np.add.at(folded, m % cells, w)  # e^{i k_m d Δx} depends on m mod cells only
-    row = np.real(np.fft.ifft(folded)) * cells * h / length  # P as a function of d = i − j
-    d = (np.arange(cells)[None, :] - np.arange(cells)[:, None]) % cells
-    return np.maximum(row[d], 0.0)
+    w = np.sinc(k * h / (2 * np.pi)) ** 2  # np.sinc(x) = sin(πx)/(πx)
+    # e^{i k_m d Δx} depends on m mod cells only; no step: P̂ = 1 exactly (the sinc² series, cut)
+    return np.stack([np.bincount(m % cells, w * phi**int(n), minlength=cells) if n else np.ones(cells)
+                     for n in steps])
 
 
 def particle_counts_periodic(ppc0: np.ndarray, lengths, dt: float, steps: int,
@@ -156,6 +171,40 @@ def _particles(P: np.ndarray, ppc0: np.ndarray) -> tuple[np.ndarray, np.ndarray]
     return np.vstack([P, alpha[frac, None] * P[frac]]), np.concatenate([ell, np.ones(frac.sum())]).astype(int)
 
 
+def _mean_power(x: np.ndarray, steps) -> np.ndarray:
+    """``x**n`` averaged over ``steps`` (an int, or the steps pooled into one row)."""
+    steps = np.atleast_1d(np.asarray(steps, dtype=np.int64))
+    return sum(x ** int(n) for n in steps) / steps.size
+
+
+def linear_structure_factor(cells: tuple[int, ...], dt_over_dx2: tuple[float, ...], steps=None) -> np.ndarray:
+    r"""Exact static structure factor of the linearised (Gaussian) scheme around a uniform density,
+    on the grid's discrete wave numbers (the full DFT grid, numpy's FFT order; ``S[0] = 0``).
+
+    S(k) = ⟨|δN̂_k|²⟩ / ⟨N_total⟩ with ``δN̂_k = Σ_j δN_j e^{−i k·x_j}`` the DFT of the cell counts'
+    fluctuations (:mod:`ti_dk.core.spectra`). With the symbol of the discrete Laplacian
+    ``λ(k) = Σ_a (4/Δx_a²) sin²(k_a Δx_a/2)`` and ``s_k = Δt λ(k)/4 = Σ_a (Δt/Δx_a²) sin²(π m_a/M_a)``,
+    the Euler–Maruyama step of eq. (10)–(11) (D = ½) multiplies mode k by ``g_k = 1 − 2 s_k`` and
+    adds noise of variance ``4 ρ s_k`` per cell and step (ρ particles per cell: each face carries a
+    count of variance ρ Δt/Δx_a², and ``|1 − e^{−i k_a Δx_a}|² = 4 sin²(k_a Δx_a/2)``). So
+    ``⟨|δN̂_k|²⟩/(M ρ) = 4 s_k Σ_{i<n} g_k^{2i}``:
+
+    .. math:: S_n(k) = \frac{1 − g_k^{2n}}{1 − s_k} \xrightarrow{n→∞} \frac{1}{1 − Δt λ(k)/4},
+
+    after n steps from the uniform state (``steps = n``; a sequence of steps: their mean, a pooled
+    row), or stationary (``steps`` None). Independent of ρ; S → 1 as Δt → 0 (the particles'
+    answer); k = 0 (the total) is exactly 0. Parseval gives the sum rule
+    ``ρ · mean_k S(k)`` = the per-cell count variance (:func:`linear_scheme_variance`).
+    """
+    grids = np.meshgrid(*[np.arange(m) for m in cells], indexing="ij")
+    s = sum(c * np.sin(np.pi * k / m) ** 2 for c, k, m in zip(dt_over_dx2, grids, cells))
+    S = 1.0 / (1.0 - s)
+    if steps is not None:
+        S = S * (1.0 - _mean_power((1.0 - 2.0 * s) ** 2, steps))
+    S.flat[0] = 0.0
+    return S
+
+
 def linear_scheme_variance(cells: tuple[int, ...], dt_over_dx2: tuple[float, ...], ppc: float,
                            steps: int | None = None) -> float:
     r"""Exact per-cell count variance of the linearised (Gaussian) scheme around a uniform density.
@@ -164,15 +213,42 @@ def linear_scheme_variance(cells: tuple[int, ...], dt_over_dx2: tuple[float, ...
     noise variance 4 λ S_k per step, with S_k = Σ_a (Δt/Δx_a²) sin²(π k_a / M_a). Its stationary
     variance is λ / (1 − S_k); started from the uniform state it is λ (1 − g_k^{2n}) / (1 − S_k)
     after n steps. The cell variance is the mean over all modes, the k = 0 mode (total mass) being
-    exactly zero: λ (1 − 1/M) · mean_{k≠0} 1/(1 − S_k) in the stationary case.
+    exactly zero: λ (1 − 1/M) · mean_{k≠0} 1/(1 − S_k) in the stationary case — λ times the mean
+    of :func:`linear_structure_factor`.
     """
-    grids = np.meshgrid(*[np.arange(m) for m in cells], indexing="ij")
-    S = sum(c * np.sin(np.pi * k / m) ** 2 for c, k, m in zip(dt_over_dx2, grids, cells))
-    var = ppc / (1.0 - S)
-    if steps is not None:
-        var = var * (1.0 - (1.0 - 2.0 * S) ** (2 * steps))
-    var.flat[0] = 0.0
-    return float(var.mean())
+    return float(ppc * linear_structure_factor(cells, dt_over_dx2, steps).mean())
+
+
+def particle_structure_factor(ppc: float, cells: tuple[int, ...], lengths, dt: float, steps=None,
+                              clamp: bool = True) -> np.ndarray:
+    r"""Exact static structure factor of the particle counts in a periodic box (full DFT grid,
+    numpy's FFT order), defined as in :func:`linear_structure_factor`.
+
+    ``steps`` None: N independent particles uniform in the box (``particle_init =
+    "exact_uniform"``, and the equilibrium of any start): ``S = 1`` for k ≠ 0 and 0 at k = 0 (N is
+    fixed). Otherwise ``ppc = ℓ + α`` particles started uniformly in each cell (ℓ, plus one with
+    probability α), after n steps of the walk: each particle adds ``Var e^{−ik·x} = 1 − |E e^{−ik·x}|²``
+    to ⟨|δN̂_k|²⟩ (a Bernoulli one ``α − α²|…|²``), and ``|E e^{−ik·x}| = |P̂_n(k)|``, the product
+    over axes of :func:`walk_symbol`:
+
+    .. math:: S_n(k) = \frac{ℓ + α − (ℓ + α²)\, |\hat P_n(k)|^2}{ℓ + α},
+
+    which tends to 1 (k ≠ 0) and to α(1 − α)/(ℓ + α) at k = 0. A sequence of steps: their mean.
+    """
+    cells = tuple(cells)
+    S = np.ones(cells)
+    if steps is None:
+        S.flat[0] = 0.0
+        return S
+    lengths = np.broadcast_to(np.asarray(lengths, dtype=np.float64), (len(cells),))
+    ell = math.floor(ppc)
+    alpha = ppc - ell
+    hats = [walk_symbol(m, L, dt, steps, clamp) for m, L in zip(cells, lengths)]  # (steps, M_a) per axis
+    p2 = np.zeros(cells)
+    for i in range(hats[0].shape[0]):
+        p2 += math.prod(np.ix_(*[h[i] for h in hats])) ** 2  # |P̂_n(k)|², separable over axes
+    p2 /= hats[0].shape[0]
+    return (ell + alpha - (ell + alpha**2) * p2) / ppc
 
 
 def sampling_se(pmf: np.ndarray, members: int, replicas: int = 400, seed: int = 0) -> dict[str, float]:

@@ -77,10 +77,8 @@ def cluster(tags: np.ndarray, p: RegridParams) -> list[Box]:
     A box in the making is ``(lo, hi, sigs)``: its bounds as lists, shrunk to its tags, and its
     signatures (tags per plane normal to each axis) as lists of ints. Most boxes are small, and
     NumPy's per-call overhead on them was most of the cost: the cuts now read the signatures in
-    plain Python, and a cut costs one reduction, over one of its parts (:func:`_parts`), where
-    each part cost two. Same boxes in the same order, 2.3–3.3 times faster (best of 3, old and
-    new alternating on a noisy 2-core host): ellipse2d's 741 recorded clusterings in 0.41–0.60 s
-    instead of 1.10–1.59 s, sphere3d's 3 in 110–181 ms instead of 305–525.
+    plain Python, and a cut costs one reduction, over one of its parts (:func:`_parts`), the
+    other's signatures being the parent's minus those (timings: ``benchmarks/RESULTS.md``).
     """
     boxes: list[Box] = []
     d = tags.ndim

@@ -32,8 +32,8 @@ class SPDESolver(Fluxes, Solver):
     cell ``g``, so all four words are used in 1D and 2D (three in 3D). This numbering replaced one
     counter per cell (issue 13); it changed the 1D and 2D noise streams, not the 3D one.
     For the finite-volume scheme ``√max(q, 0)`` is taken on both sides of each face as the flux is
-    made (measured: as fast as loading roots from a pass before, and that pass, 7 % of the 2D step,
-    and its field are gone); for the Gaussian scheme q̄'s roots are taken once per cell for all
+    made (as fast as loading roots made by a pass before, which saves that pass and its field:
+    ``benchmarks/RESULTS.md``); for the Gaussian scheme q̄'s roots are taken once per cell for all
     members.
 
     Boundaries: periodic faces wrap; Neumann faces carry no flux; a Dirichlet face sees a ghost
@@ -101,8 +101,7 @@ class SPDESolver(Fluxes, Solver):
         such cells on both sides. Every other cell's q and every other face's flux keep their bits
         (each face's noise is keyed on the face); q̄ may round differently in the last bit (fast
         math compiles the kernel anew). Call before the first step (the kernels compile the
-        choice in). sphere3d: a third of the cells are such, the hybrid's flux pass 81 → 69 ms
-        (medians of 12)."""
+        choice in). In a 3D hybrid a large share of the cells are such (``benchmarks/RESULTS.md``)."""
         self.replaced = mask
 
     @property

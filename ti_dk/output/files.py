@@ -17,6 +17,7 @@ import h5py
 import numpy as np
 
 from ..scene.schema import ConfigError
+from .units import units_of
 
 STAT_KEYS = ("mean", "variance", "skewness", "kurtosis")
 
@@ -88,6 +89,7 @@ class Outputs:
     chunks = property(lambda self: self.out / f"{self.stem}_chunks")
     lock = property(lambda self: self.out / f"{self.stem}.lock")
     movie = property(lambda self: self.out / f"{self.stem}.mp4")
+    structure_factor = property(lambda self: self.frames / "structure_factor.png")  # S(k) drawn, beside the frames
 
     @contextmanager
     def claim(self, overwrite: bool = False, fresh: bool = True):
@@ -132,7 +134,8 @@ class Outputs:
 
     def clear_pictures(self) -> None:
         """Remove the frames, movie and snapshots of an earlier run on this output."""
-        for folder, patterns in ((self.frames, ("frame_*.png",)), (self.snapshots, ("data*.h5",))):
+        for folder, patterns in ((self.frames, ("frame_*.png", self.structure_factor.name)),
+                                 (self.snapshots, ("data*.h5",))):
             for pattern in patterns:
                 for p in folder.glob(pattern):
                     p.unlink(missing_ok=True)
@@ -164,13 +167,32 @@ class RunFile:
     """One run's HDF5 file.
 
     Layout: attributes ``scene`` (JSON), ``versions`` (JSON), ``seed``, ``complete``,
-    ``wall_time``, ``timing``; ``/stats/time`` and ``/stats/{mean,variance,skewness,kurtosis}``
-    (only ``mean`` for a single member without time pooling) shaped ``(n_rows, *cells)`` in
-    number-density units, ``/stats/n_samples``, optional ``/stats/histogram``
-    ``(n_rows, *cells, bins)`` with attribute ``lo``; ``/diagnostics/*`` one entry per step;
-    ``/regrid/*`` one entry per regrid of a hybrid run; ``/frames/*`` one entry per frame. Every
-    row is flushed when written; ``complete`` turns true only at the end, so
-    a killed run leaves a readable file that says it is unfinished.
+    ``wall_time``, ``timing``; ``/stats/time``, ``/stats/n_samples`` and
+    ``/stats/{mean,variance,skewness,kurtosis}`` shaped ``(n_rows, *cells)``, optional
+    ``/stats/histogram`` ``(n_rows, *cells, bins)`` with attribute ``lo`` and
+    ``/stats/histogram_outside``, optional ``/stats/structure_factor`` ``(n_rows, *half cells)``
+    (:mod:`ti_dk.core.spectra`; attributes ``definition``, ``k0``, ``k1``, …: the wave numbers per
+    axis); ``/diagnostics/{time,mass,min_density,negative_cells,
+    boundary_inflow,clamped_steps}`` one entry per step (hybrid: also ``particles`` and
+    ``regrid_change``; a compared method: ``compare_{mass,min_density,negative_cells}``);
+    ``/regrid/{step,boxes,covered_cells,efficiency,created,removed,on_demand}`` one entry per
+    regrid of a hybrid run; ``/frames/{time,negative_cells}`` one entry per frame.
+
+    Units: every dataset carries a ``units`` attribute (:data:`ti_dk.output.units.UNITS`). The
+    statistics are of the number density, per unit volume (``/stats`` attribute ``cell_volume``
+    turns them into particles per cell); skewness κ3/κ2^{3/2} and kurtosis κ4/κ2² + 3
+    (non-excess: 3 for a Gaussian) are dimensionless; histograms and frames count particles per
+    cell. Diagnostics and regrid records are sums over the ensemble's members (``min_density``
+    is the minimum over members and cells): ``diagnostics/mass`` is in particles summed over
+    members. Times are in L²/2D.
+
+    Ensemble-only: ``variance``, ``skewness`` and ``kurtosis`` need two or more densities per
+    row, so a run of one member without time pooling (``t_equil`` unset) writes only ``mean``
+    (that member's density) and ``n_samples``; the ``/stats`` attribute ``ensemble_only`` names
+    them in every file, ``omitted`` those this file leaves out.
+
+    Every row is flushed when written; ``complete`` turns true only at the end, so a killed run
+    leaves a readable file that says it is unfinished.
     """
 
     def __init__(self, path: Path, scene, histogram_bins: int | None = None):
@@ -191,14 +213,28 @@ class RunFile:
         self._grow(st, "n_samples", (), np.int64)
         # one member and no pooling: only the mean (= that member's density) means anything
         self.keys = STAT_KEYS if scene.method.ensemble > 1 or scene.stats.t_equil is not None else STAT_KEYS[:1]
+        st.attrs["ensemble_only"] = " ".join(STAT_KEYS[1:])
+        st.attrs["omitted"] = " ".join(k for k in STAT_KEYS if k not in self.keys)
         for k in self.keys:
             self._grow(st, k, scene.grid.cells, np.float64)
         if histogram_bins:
             hist = self._grow(st, "histogram", (*scene.grid.cells, histogram_bins), np.int64)
             hist.attrs["lo"] = scene.stats.histogram[0]
             self._grow(st, "histogram_outside", scene.grid.cells, np.int64)
+        if scene.stats.structure_factor and len(self.keys) > 1:
+            self._structure_factor(st, scene.grid)
         self.diag = self.h5.create_group("diagnostics")
         self.h5.flush()
+
+    def _structure_factor(self, st, grid) -> None:
+        """The dataset of S(k), with its definition and wave numbers as attributes."""
+        from ..core import spectra
+
+        ds = self._grow(st, "structure_factor", spectra.half_shape(grid.cells), np.float64)
+        ds.attrs["definition"] = ("S(k) = <|sum_j dN_j exp(-i k.x_j)|^2> / <N_total>, dN_j = N_j - <N_j> the "
+                                  "particle count fluctuation of cell j; numpy rfftn half grid, k_a = 2 pi m_a / L_a")
+        for a, k in enumerate(spectra.wavenumbers(grid.cells, grid.lengths)):
+            ds.attrs[f"k{a}"] = k
 
     @classmethod
     def of(cls, outputs: Outputs, scene) -> "RunFile":
@@ -208,8 +244,9 @@ class RunFile:
 
     @staticmethod
     def _grow(group, name, shape, dtype):
-        return group.create_dataset(name, shape=(0, *shape), maxshape=(None, *shape), dtype=dtype,
-                                    chunks=(1, *shape) if shape else (1024,))
+        ds = group.create_dataset(name, shape=(0, *shape), maxshape=(None, *shape), dtype=dtype,
+                                  chunks=(1, *shape) if shape else (1024,))
+        return _label(ds)
 
     @staticmethod
     def _append(ds, rows) -> None:
@@ -246,7 +283,7 @@ class RunFile:
             require_space(self.path, 8 * len(records) * len(records[0]))
             g = self.h5.create_group(name)
             for k in records[0]:
-                g.create_dataset(k, data=np.array([r[k] for r in records]))
+                _label(g.create_dataset(k, data=np.array([r[k] for r in records])))
             self.h5.flush()
 
     def annotate(self, name: str, value) -> None:
@@ -270,6 +307,14 @@ class RunFile:
             except OSError:
                 if error is None:
                     raise
+
+
+def _label(ds):
+    """``ds`` with its ``units`` attribute (:func:`ti_dk.output.units.units_of`), where one is listed."""
+    units = units_of(ds.name)
+    if units is not None:
+        ds.attrs["units"] = units
+    return ds
 
 
 def scene_json(scene) -> str:

@@ -1,14 +1,24 @@
-"""Frames of 2D and 3D runs: density panels with axes, the particle region, negative cells, one
-colour bar; PNG files and an MP4 movie.
+"""Frames of 2D and 3D runs: density panels with axes, the particle region and its boxes,
+negative cells, one colour bar; PNG files and an MP4 movie.
 
 One rendering path: a matplotlib figure (Agg canvas, no window) built once per run and updated
-in place for every frame. Each panel is the density of member 0 in particles per cell, drawn
-cell for cell (nearest-neighbour) on viridis over ``[0, vmax]`` with ``vmax`` above the largest
-initial density by three Poisson standard deviations, so the bulk's fluctuations show; denser
-cells take the top colour (the colour bar's upper arrow) and negative cells are white (its lower
-arrow), exactly one cell in size at any resolution. The particle region (the union of the
-hybrid's boxes) is outlined in black inside a white line, visible on every colour; its outline is
-that of the cell mask, so thin boxes cut along the region's edge add no lines of their own.
+in place for every frame. Each panel is the density of member 0 in particles per cell (not the
+number density of the run file's ``/stats``: a frame counts particles), drawn cell for cell
+(nearest-neighbour) on viridis over ``[0, vmax]``, the same range in every frame of a run: by
+default (:func:`colour_max`) three Poisson standard deviations above the largest density the
+run starts from or is fed by (initial condition, Dirichlet reservoirs), so the bulk's
+fluctuations show and nothing the run's mean can reach saturates; the scene key ``color_max``
+sets it. Denser cells take the top colour (the colour bar's upper arrow) and negative cells are
+white (its lower arrow), exactly one cell in size at any resolution.
+
+The particle region (the union of the hybrid's boxes) is outlined in black inside a white line,
+visible on every colour; the outline is that of the cell mask. The Berger–Rigoutsos boxes it is
+made of are drawn inside it as thin red lines (``BOX``; where a box side lies on the region's
+edge the outline covers it). A hole in the region (uncovered cells that no path of face
+neighbours outside the region links to the domain's edge, :func:`holes`) is outlined by a dotted
+black line on white, so it is not mistaken for a box edge or the region's outer edge. Each side
+of an axis is labelled with its boundary kind (``periodic``, ``neumann``, ``dirichlet ρ=…`` in
+particles per cell, :func:`side_labels`).
 
 2D: one panel per method side by side (the paper's Figs. 5–6). 3D: one row per method of three
 mid-plane slices (xy, xz, yz) and a ray-marched volume rendering (a Taichi kernel) of translucent
@@ -38,8 +48,10 @@ from ..hybrid.regrid import mask as region_mask
 DPI = 100  # figure pixels per inch: sizes below are in pixels
 LEFT, GAP, TOP, ROW_HEAD, BOTTOM, BAR = 56, 62, 34, 22, 42, 74  # layout [pixels]
 OUTLINE = [dict(color="white", lw=2.6, capstyle="projecting"), dict(color="black", lw=1.0, capstyle="projecting")]
+HOLE = [dict(color="white", lw=2.2, capstyle="butt"), dict(color="black", lw=1.2, linestyle=(0, (1.2, 1.2)))]
+BOX = dict(color=(0.95, 0.35, 0.25), lw=0.8)  # the region's boxes: thin red lines (the 3D hull's colour)
 VIEW = (35.0, 25.0)  # volume rendering: azimuth and elevation of the viewer [degrees]
-HULL_RGB = (0.95, 0.35, 0.25)  # volume rendering: colour of the particle region's translucent hull
+HULL_RGB = BOX["color"]  # volume rendering: colour of the particle region's translucent hull
 
 
 @dataclass
@@ -51,10 +63,16 @@ class Panel:
     boxes: list | None = None  # [(lo, hi), ...] in cells (hybrid only)
 
 
-def colour_max(ppc0: np.ndarray) -> float:
-    """Top of the colour range: the largest initial density plus three Poisson standard deviations,
-    rounded up to a multiple of 5 (1 below 10 particles per cell)."""
-    m = float(np.max(ppc0)) if np.size(ppc0) else 0.0
+def colour_max(ppc0: np.ndarray, reservoirs=()) -> float:
+    """Top of the colour range [particles per cell]: the largest density m of the initial
+    condition ``ppc0`` and the Dirichlet ``reservoirs`` plus three Poisson standard deviations,
+    rounded up to a multiple of 5 (1 below 10 particles per cell).
+
+    The mean density solves the diffusion equation, which never exceeds its largest initial or
+    boundary value (maximum principle), so one fixed range serves the whole run: the same colour
+    is the same density in every frame, and only cells more than 3σ above m saturate.
+    """
+    m = max([float(np.max(ppc0)) if np.size(ppc0) else 0.0, *map(float, reservoirs)])
     v = m + 3.0 * math.sqrt(max(m, 0.0))
     step = 5.0 if v > 10 else 1.0
     return max(step, step * math.ceil(v / step))
@@ -63,7 +81,7 @@ def colour_max(ppc0: np.ndarray) -> float:
 def time_label(t: float) -> str:
     """``t = 9.60×10⁻⁴ L²/2D``: three significant digits and the unit (mathtext)."""
     if t == 0:
-        return r"$t = 0$"
+        return r"$t = 0\ L^2/2D$"
     e = math.floor(math.log10(abs(t)))
     m = t / 10.0**e
     if round(m, 2) >= 10:
@@ -93,13 +111,66 @@ def outline(region: np.ndarray, dx: tuple[float, float]) -> np.ndarray:
     return np.concatenate(segs).astype(float)
 
 
+def holes(region: np.ndarray) -> np.ndarray:
+    """The holes of a 2D cell mask: cells outside it from which no path of face neighbours
+    outside it reaches the domain's edge (periodic sides count as edges, so a region that wraps
+    around the domain has no hole through the seam)."""
+    free = ~np.asarray(region, dtype=bool)
+    reach = np.zeros_like(free)  # free cells linked to the edge
+    for edge in (np.s_[0, :], np.s_[-1, :], np.s_[:, 0], np.s_[:, -1]):
+        reach[edge] = free[edge]
+    while True:
+        grown = reach.copy()
+        grown[1:] |= reach[:-1]
+        grown[:-1] |= reach[1:]
+        grown[:, 1:] |= reach[:, :-1]
+        grown[:, :-1] |= reach[:, 1:]
+        grown &= free
+        if np.array_equal(grown, reach):
+            return free & ~reach
+        reach = grown
+
+
+def box_edges(boxes, axes: tuple[int, int], dx: tuple[float, ...], cut: int | None = None,
+              at: int = 0) -> np.ndarray:
+    """Segments ``(4k, 2, 2)`` in domain units: the sides of the ``k`` boxes ``(lo, hi)`` (cells,
+    hi exclusive) seen in the plane of ``axes``; with ``cut``, only the boxes that hold cell
+    ``at`` along that axis (a slice through the cell centres of layer ``at``)."""
+    a, b = axes
+    segs = []
+    for lo, hi in boxes:
+        if cut is not None and not lo[cut] <= at < hi[cut]:
+            continue
+        x0, x1, y0, y1 = lo[a] * dx[a], hi[a] * dx[a], lo[b] * dx[b], hi[b] * dx[b]
+        segs += [((x0, y0), (x1, y0)), ((x1, y0), (x1, y1)), ((x1, y1), (x0, y1)), ((x0, y1), (x0, y0))]
+    return np.array(segs, dtype=float).reshape(-1, 2, 2)
+
+
+def side_labels(boundary, reservoir_ppc) -> tuple[tuple[str, str], ...]:
+    """Per axis, the (lower, upper) sides' boundary kinds as the frames write them: ``periodic``,
+    ``neumann`` or ``dirichlet ρ=40/cell`` (the reservoir in particles per cell)."""
+    def label(kind: str, ppc: float) -> str:
+        return f"dirichlet ρ={ppc:g}/cell" if kind == "dirichlet" else kind
+
+    return tuple((label(k0, r0), label(k1, r1)) for (k0, k1), (r0, r1) in zip(boundary, reservoir_ppc))
+
+
+def dirichlet_ppc(boundary, reservoir_ppc) -> list[float]:
+    """The reservoir densities [particles per cell] of the Dirichlet sides (for :func:`colour_max`)."""
+    return [r for kinds, ppcs in zip(boundary, reservoir_ppc) for k, r in zip(kinds, ppcs) if k == "dirichlet"]
+
+
 class Renderer:
     """Frames of a grid of ``cells`` (lengths ``lengths``) with ``rows`` methods, densities on
-    ``[0, vmax]`` particles per cell, headed by ``title``."""
+    ``[0, vmax]`` particles per cell, headed by ``title``; ``sides``: per axis the (lower, upper)
+    sides' labels (:func:`side_labels`; None: none); ``dense``: 3D, the largest initial density
+    that the volume rendering's shell levels are fractions of (None: m with m + 3√m = vmax)."""
 
-    def __init__(self, cells, lengths, rows: int, vmax: float, title: str):
+    def __init__(self, cells, lengths, rows: int, vmax: float, title: str, sides=None, dense: float | None = None):
         self.cells, self.lengths = tuple(int(n) for n in cells), tuple(float(v) for v in lengths)
         self.dim, self.rows, self.vmax, self.title = len(self.cells), rows, float(vmax), title
+        self.sides = sides
+        m = (math.sqrt(9 / 4 + self.vmax) - 1.5) ** 2 if dense is None else dense  # m + 3√m = vmax
         self.dx = tuple(L / n for L, n in zip(self.lengths, self.cells))
         target = 512 if self.dim == 2 else 256  # pixels along the longest side of a panel
         self.s = max(1, target // max(round(L / min(self.dx)) for L in self.lengths))  # pixels per finest cell
@@ -108,10 +179,24 @@ class Renderer:
         self.norm = Normalize(0.0, self.vmax)
         if self.dim == 3:
             self.planes = (((0, 1), 2), ((0, 2), 1), ((1, 2), 0))  # (shown axes, cut axis)
-            self.volume = Volume(self.cells, self.cmap, self.vmax)
+            self.volume = Volume(self.cells, self.cmap, self.vmax, m)
         else:
             self.planes = (((0, 1), None),)
         self._layout()
+
+    @classmethod
+    def of(cls, scene, compared: bool = False) -> "Renderer":
+        """The frames of a 2D or 3D ``scene`` (with ``compared``, its ``compare`` method beside or
+        below): colour range ``color_max``, or if 0 :func:`colour_max` of the initial density and the
+        Dirichlet reservoirs; each side labelled with its boundary kind."""
+        g, m = scene.grid, scene.method
+        methods = m.name + (f" (left) and {m.compare} (right)" if compared and g.dim == 2 else
+                            f" (top) and {m.compare} (bottom)" if compared else "")
+        ppc0 = scene.initial_ppc
+        vmax = scene.output.color_max or colour_max(ppc0, dirichlet_ppc(g.boundary, g.reservoir_ppc))
+        return cls(g.cells, g.lengths, 1 + compared, vmax,
+                   f"{scene.name}: {methods}, {'×'.join(map(str, g.cells))} cells, member 0",
+                   side_labels(g.boundary, g.reservoir_ppc), float(np.max(ppc0)))
 
     # -- layout (once) ------------------------------------------------------------------
     def _size(self, axes) -> tuple[int, int]:
@@ -171,15 +256,27 @@ class Renderer:
         ext = (0, self.lengths[a], 0, self.lengths[b])
         image = ax.imshow(np.zeros((self.cells[b], self.cells[a])), origin="lower", extent=ext, cmap=self.cmap,
                           norm=self.norm, interpolation="nearest", resample=False, aspect="auto")
-        lines = [ax.add_collection(LineCollection([], **style)) for style in OUTLINE]
+        lines = [ax.add_collection(LineCollection([], **style)) for style in (BOX, *OUTLINE, *HOLE)]
         names = "xyz"
         ax.set_xlabel(f"{names[a]} [L]", labelpad=1)
         ax.set_ylabel(f"{names[b]} [L]", labelpad=1)
         ax.tick_params(labelsize=8, length=3, pad=2)
+        if self.sides is not None:
+            self._side_labels(ax, a, b)
         if cut is not None:
             c = (self.cells[cut] // 2 + 0.5) * self.dx[cut]
-            ax.set_title(f"{names[a]}{names[b]} slice, {names[cut]} = {c:.3g}", fontsize=9)
+            ax.set_title(f"{names[a]}{names[b]} slice, {names[cut]} = {c:.3g} L", fontsize=9)
         return image, lines
+
+    def _side_labels(self, ax, a: int, b: int):
+        """Each side's boundary kind at the ends of the axis labels' lines: the lower and upper
+        sides of axis ``a`` below the panel's left and right ends, those of ``b`` left of its
+        bottom and top."""
+        style = dict(xycoords="axes fraction", textcoords="offset pixels", fontsize=7.5, color="0.25")
+        for end, ha in ((0, "left"), (1, "right")):
+            ax.annotate(self.sides[a][end], (end, 0), (0, -19), ha=ha, va="top", **style)
+        for end, va in ((0, "bottom"), (1, "top")):
+            ax.annotate(self.sides[b][end], (0, end), (-34, 0), ha="center", va=va, rotation=90, **style)
 
     def _colorbar(self):
         """The colour bar beside the panels, from the top of the first row to the bottom of the last."""
@@ -228,28 +325,20 @@ class Renderer:
     # -- one frame ----------------------------------------------------------------------
     def frame(self, t: float, panels: list[Panel]) -> np.ndarray:
         """One frame as a ``(height, width, 3)`` uint8 array."""
-        self.header.set_text(f"{self.title}     {time_label(t)}")
+        self.header.set_text(f"{self.title}; density in particles per cell     {time_label(t)}")
         for r, p in enumerate(panels):
             ppc = np.asarray(p.ppc)
             neg = int((ppc < 0).sum())
             region = region_mask(p.boxes, self.cells) if p.boxes is not None else None
+            any_hole = self._slices(r, p, ppc, region)
             text = f"{p.title}: {neg:,} negative cell{'s' * (neg != 1)}"
             if region is not None:
-                text += f"; particle region {int(region.sum()):,} cells in {len(p.boxes)} box{'es' * (len(p.boxes) != 1)}"
+                text += (f"; particle region {int(region.sum()):,} cells in {len(p.boxes)} "
+                         f"box{'es' * (len(p.boxes) != 1)} (red){'; holes dotted' * any_hole}")
             if self.dim == 2:
-                self.axes[r][0].set_title(text, fontsize=10)
+                self.axes[r][0].set_title(text, fontsize=9.5)
             else:
                 self.row_titles[r].set_text(text)
-            mids = [n // 2 for n in self.cells]
-            for k, ((a, b), cut) in enumerate(self.planes):
-                plane = ppc if cut is None else np.take(ppc, mids[cut], axis=cut)
-                self.images[r][k].set_data(plane.T)
-                segs = np.zeros((0, 2, 2))
-                if region is not None:
-                    rplane = region if cut is None else np.take(region, mids[cut], axis=cut)
-                    segs = outline(rplane, (self.dx[a], self.dx[b]))
-                for lc in self.lines[r][k]:
-                    lc.set_segments(segs)
             if self.dim == 3:
                 lv = " and ".join(f"{v:.3g}" for v in self.volume.levels)
                 self.axes[r][3].set_title(f"volume: shells at {lv} per cell" + (
@@ -257,6 +346,25 @@ class Renderer:
                 size = self.images[r][3].get_array().shape[0]
                 self.images[r][3].set_data(self.volume.render(ppc, region, size))
         return self._draw()
+
+    def _slices(self, r: int, p: Panel, ppc: np.ndarray, region: np.ndarray | None) -> bool:
+        """Method ``r``'s density slices (the whole grid in 2D), with the region's boxes, outer edge
+        and holes' edges; whether a slice shows a hole."""
+        mids = [n // 2 for n in self.cells]
+        any_hole = False
+        for k, ((a, b), cut) in enumerate(self.planes):
+            plane = ppc if cut is None else np.take(ppc, mids[cut], axis=cut)
+            self.images[r][k].set_data(plane.T)
+            segs = [np.zeros((0, 2, 2))] * 3  # boxes, the region's outer edge, its holes' edges
+            if region is not None:
+                rplane = region if cut is None else np.take(region, mids[cut], axis=cut)
+                hole, d = holes(rplane), (self.dx[a], self.dx[b])
+                any_hole |= bool(hole.any())
+                segs = [box_edges(p.boxes, (a, b), self.dx, cut, mids[cut] if cut is not None else 0),
+                        outline(rplane | hole, d), outline(hole, d)]
+            for lc, s in zip(self.lines[r][k], segs[:1] + segs[1:2] * 2 + segs[2:] * 2):  # as (BOX, *OUTLINE, *HOLE)
+                lc.set_segments(s)
+        return any_hole
 
     def _draw(self) -> np.ndarray:
         canvas = self.fig.canvas
@@ -287,11 +395,10 @@ class Volume:
 
     LEVELS, SHELL, HULL, NEGATIVE = (0.25, 0.6), 0.3, 0.15, 0.5
 
-    def __init__(self, cells, cmap, vmax: float):
+    def __init__(self, cells, cmap, vmax: float, dense: float):
         self.cells = tuple(cells)
         self.vmax = float(vmax)
-        m = (math.sqrt(9 / 4 + vmax) - 1.5) ** 2  # the largest initial density: m + 3√m = vmax
-        self.levels = [f * m for f in self.LEVELS]
+        self.levels = [f * dense for f in self.LEVELS]  # fractions of the largest initial density
         self.lut = ti.Vector.field(3, ti.f64, shape=256)  # colormap table
         self.lut.from_numpy(cmap(np.linspace(0, 1, 256))[:, :3])
         self.img = None  # RGB [0, 1], (size, size): allocated at the first call

@@ -20,8 +20,8 @@ class BlockPool(BlockSlots, BlockMoves):
     axis), each active block holding two buffers of ``capacity`` slots; block ``B`` of member ``e``
     has key ``(e, B)`` (``B``: C-order index of the block) and holds the particles of its cells.
     A buffer's slots are dense arrays of :data:`CHUNK` slots under a second pointer, allocated as
-    they fill: a dense array of ``capacity`` slots per block made every active block as large
-    as the fullest (sphere3d at 64³: 470 MB of slots for 1.2 M particles, against 84 MB).
+    they fill: a dense array of ``capacity`` slots per block would make every active block as
+    large as the fullest (the memory measured: ``benchmarks/RESULTS.md``).
 
     Active blocks are those :meth:`fitted` asked for; :meth:`retain` deactivates the rest and
     releases the chunks past each block's particles. A

@@ -41,8 +41,8 @@ class ParticlePool:
     def grown(self, capacity: int) -> "ParticlePool":
         """This pool, or (when ``capacity`` exceeds its own) a new one holding the same particles,
         with a quarter more slots than asked and at least twice the old: every new pool recompiles
-        the kernels that take it (2.2 s at step 10 of ellipse2d, whose first regrid asked for 7 %
-        more than the initial fit), so a region that drifts between regrids should not grow it."""
+        the kernels that take it (seconds), so a region that drifts between regrids should not
+        grow it each time."""
         if capacity <= self.capacity:
             return self
         capacity = max(capacity + capacity // 4, 2 * self.capacity)
@@ -106,13 +106,10 @@ class ParticlePool:
 
         Taichi 1.7.4's CPU backend (its default ``make_cpu_multithreading_loop`` transform) cuts a
         parallel range into one contiguous block per thread of at least 512 iterations. So the
-        range is set here, at run time, not over the capacity: the empty slots beyond the
-        particles (a third or more of a hybrid's pool) went to the last thread while the first
-        walked every particle (a loop over 1.1 M slots whose first half held the work: 277 ms on
-        1 thread and on 2; 2× faster with the range ending at the work). And the units are small
-        (:data:`BLOCK`): with 256 slots, ellipse2d's 70,000 particles made 274 units, one block,
-        and its walk ran on one thread (2.25 ms on 1 thread, 2.10 on 2; with 32 slots 2.12 and
-        1.35)."""
+        range is set here, at run time, not over the capacity: otherwise the empty slots beyond
+        the particles (a third or more of a hybrid's pool) go to the last thread while the first
+        walks every particle. And the units are small (:data:`BLOCK`), so that a loop has enough
+        of them to give both threads work (the unit-size measurements: ``benchmarks/RESULTS.md``)."""
         self.span[None] = 0
         ti.loop_config(serialize=True)  # over members: a serial task (grid.exclusive_scan)
         for e in range(self.ensemble):

@@ -29,8 +29,8 @@ def capacity(need: float) -> int:
 def total(counts, row: tuple = ()) -> int:
     """Σ of the per-member counts ``counts[(*row, e)]`` (an i32 field whose last axis is the
     member): the particles a solver reports after every step. A few members are read one by
-    one (8 µs a read); many are copied at once (``to_numpy``: 180 µs in ellipse2d, a kernel
-    whose parallel task costs most of it, which was 2 % of that run's time)."""
+    one; many are copied at once (``to_numpy`` launches a kernel whose parallel task costs more
+    than a few single reads: ``benchmarks/RESULTS.md``)."""
     E = counts.shape[-1]
     if E <= 16:
         return sum(int(counts[(*row, e)]) for e in range(E))

@@ -24,7 +24,7 @@ REGRID_RATE = 1e7  # grid cells per second a hybrid regrid or on-demand extensio
 
 def _particles(scene: Scene) -> float:
     """The particles per member the particle method must hold (an upper bound for huge grids)."""
-    from ..methods.particles import ParticleSolver  # imported here to keep config light
+    from ..methods.particles import ParticleSolver  # imported here: the particle method is needed only for its memory rule
 
     m = math.prod(scene.grid.cells)
     if m <= 10**7:
@@ -42,7 +42,8 @@ def _ppc_max(scene: Scene) -> float:
 
 
 def memory_estimate(scene: Scene) -> dict[str, float]:
-    """Bytes a run needs, by part: solver fields, particles, host copies, statistics, histogram.
+    """Bytes a run needs, by part: solver fields, particles, host copies, statistics, histogram,
+    structure factor.
 
     Rough (within a factor of about 2) but computed before anything is allocated; the hybrid's
     particle pool grows with its region and is counted for the threshold density everywhere.
@@ -70,6 +71,8 @@ def memory_estimate(scene: Scene) -> dict[str, float]:
     est["statistics"] = (rows + 1) * cells * 12 * 8  # moments and accumulators per row
     if scene.stats.histogram:
         est["histogram"] = (rows + 1) * cells * (scene.stats.histogram[1] - scene.stats.histogram[0] + 1) * 8
+    if scene.stats.structure_factor:  # the counts' transforms and their moments on the host; accumulators per row
+        est["structure factor"] = 5 * mc * 8 + (rows + 1) * cells * 6 * 8
     return est
 
 
@@ -102,8 +105,8 @@ def work_estimate(scene: Scene) -> tuple[int, float]:
     The hybrid adds its particles, counted as the cells tagged at the start holding ``threshold``
     each (half that in a fixed region, which fills from its start), and a regrid's pass over the
     grid every step when extensions are on (``regrid_floor > 0``), else every ``regrid_interval``
-    steps. Measured against (benchmarks/RESULTS.md): sphere3d 7.0 min estimated, 6.6 min run;
-    ellipse2d 49 s and 51–56 s; void1d with 20,000 members 32 s and 25 s (fv), 299 s and 211 s (hybrid).
+    steps. The rates are rounded down from ``benchmarks/RESULTS.md``, where the estimates are also
+    compared with whole runs.
     """
     cells = math.prod(scene.grid.cells)
     mc = scene.method.ensemble * cells

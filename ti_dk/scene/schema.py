@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import importlib.resources
 import inspect
 import math
 import re
@@ -33,7 +34,22 @@ from ..core.grid import Geometry
 from ..hybrid.regrid import RegridParams
 from ..pools import LAYOUTS as POOL_LAYOUTS
 
-SCENE_DIR = Path(__file__).resolve().parents[2] / "scenes"
+
+def scene_dir() -> Path:
+    """Where the scene files are: the package data ``ti_dk.scenes`` through :mod:`importlib.resources`.
+
+    An installed ti_dk (wheel or editable) has it: pyproject.toml installs the top-level
+    ``scenes/`` folder as that package. A source checkout imported without installing does not;
+    then its own ``scenes/`` folder, next to ``ti_dk/``.
+    """
+    try:
+        # the package's own name: benchmarks/bench_ab.py imports copies of it under other names
+        return Path(str(importlib.resources.files(__name__.split(".")[0] + ".scenes")))
+    except ModuleNotFoundError:
+        return Path(__file__).resolve().parents[2] / "scenes"
+
+
+SCENE_DIR = scene_dir()
 METHODS = ("fv", "gaussian", "particle", "hybrid")
 SPDES = ("fv", "gaussian")  # the SPDE a hybrid run keeps on the whole grid
 GHOST_PROFILES = ("mean", "linear", "uniform")  # how sampled particles lie in their cell (see HybridSolver)
@@ -218,6 +234,8 @@ class StatsKeys:
     sample_every: int = key("int", "stationary runs: pool every k-th step", 1, lo=1)
     histogram: tuple[int, int] | None = key("special", "per-cell histogram of particles per cell, one-particle bins",
                                             None, form="[lo, hi], whole numbers with lo < hi")
+    structure_factor: bool = key("bool", "static structure factor S(k) of the count fluctuations per row "
+                                 "(/stats/structure_factor, a PNG beside the frames)", False)
 
 
 @dataclass(frozen=True)
@@ -225,6 +243,8 @@ class OutputKeys:
     """``[output]``: what the run draws beyond its statistics."""
 
     movie_frames: int = key("int", "--movie: frames evenly spaced in time", 48, lo=1, hi=10_000)
+    color_max: float = key("real", "2D/3D frames: top of the colour range in particles per cell (0: the largest "
+                           "initial or reservoir density + 3 Poisson sd)", 0.0, lo=0.0, hi=MAX_PPC)
 
 
 SECTIONS = {"grid": GridKeys, "init": InitKeys, "time": TimeKeys, "method": MethodKeys, "hybrid": HybridKeys,
@@ -359,7 +379,7 @@ def _default(name: str) -> Any:
 
 
 def keys_help() -> str:
-    """Every scene key, table by table: name, doc, what it takes, default (``--help`` and the README)."""
+    """Every scene key, table by table: name, doc, what it takes, default (``--help`` and docs/scenes.md)."""
     tables: dict[str, list[str]] = {}
     for name, k in KEYS.items():
         sec = WHERE[name][0] if name in WHERE else "init"
