@@ -152,10 +152,10 @@ def numpy_value(t: tuple, x: tuple) -> Any:
         return x[t[1]]
     if op == "neg":
         return -numpy_value(t[1], x)
-    if op == "call":
-        return _NUMPY[t[1]](numpy_value(t[2], x))
-    u, v = numpy_value(t[1], x), numpy_value(t[2], x)
     with np.errstate(all="ignore"):  # callers check that the result is finite
+        if op == "call":
+            return _NUMPY[t[1]](numpy_value(t[2], x))
+        u, v = numpy_value(t[1], x), numpy_value(t[2], x)
         return {"add": np.add, "sub": np.subtract, "mul": np.multiply, "div": np.divide, "pow": np.power}[op](u, v)
 
 
