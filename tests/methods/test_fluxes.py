@@ -12,7 +12,7 @@ from ti_dk.core.grid import Grid
 from ti_dk.methods.fluxes import bernoulli, drift_coefficients, stability_number
 from ti_dk.methods.registry import make_solver
 
-from ..helpers import KEYS, as_counts, check_moments
+from ..helpers import KEYS, as_counts, check_moments, fv_mean_step
 
 SIGMA = 0.08  # the trap of scenes/trap1d.toml: U = ½((x − ½)/σ)²
 
@@ -124,31 +124,6 @@ def test_the_trap_equilibrium(method):
         check_moments(counts, exact, ses, cells)
 
 
-def _sg_step(q, ubar, dx, dt, boundary, reservoir):
-    """One step of the drift scheme in NumPy, face by face: F = ½ (B(−δ) q_R − B(δ) q_L)/Δx,
-    δ = Ū_R − Ū_L, B(z) = z/(e^z − 1); ``ubar`` on the grid padded by one cell (reservoir cells),
-    periodic axes wrapping, none through Neumann sides."""
-    B = lambda z: np.where(z == 0, 1.0, z / np.where(z == 0, 1.0, np.expm1(z)))  # noqa: E731
-    out = q.copy()
-    inner = tuple(slice(1, -1) for _ in q.shape)
-    for a, (h, (lo, hi), (r_lo, r_hi)) in enumerate(zip(dx, boundary, reservoir)):
-        qm, um = np.moveaxis(q, a, 0), np.moveaxis(ubar[tuple(slice(None) if b == a else s
-                                                               for b, s in enumerate(inner))], a, 0)
-        periodic = lo == "periodic"
-        left = np.concatenate([qm[-1:] if periodic else np.full((1, *qm.shape[1:]), r_lo), qm])
-        right = np.concatenate([qm, qm[:1] if periodic else np.full((1, *qm.shape[1:]), r_hi)])
-        ul = np.concatenate([um[-2:-1] if periodic else um[:1], um[1:-1]])
-        ur = np.concatenate([um[1:-1], um[1:2] if periodic else um[-1:]])
-        d = ur - ul
-        F = 0.5 / h * (B(-d) * right - B(d) * left)
-        if lo == "neumann":
-            F[0] = 0.0
-        if hi == "neumann":
-            F[-1] = 0.0
-        out += np.moveaxis(dt * (F[1:] - F[:-1]) / h, 0, a)
-    return out
-
-
 @pytest.mark.parametrize("cells, boundary", [
     ((30,), [["dirichlet", "neumann"]]),
     ((9, 8), [["neumann", "dirichlet"], ["periodic", "periodic"]]),
@@ -166,7 +141,7 @@ def test_the_mean_follows_the_drift_scheme_face_by_face(cells, boundary):
     ubar = scene.potential.cell_values(grid.cells, grid.lengths, pad=1)
     q, dt = ppc / grid.cell_volume, 0.1 * min(grid.dx) ** 2
     for _ in range(6):
-        q = _sg_step(q, ubar, grid.dx, dt, [tuple(b) for b in boundary], grid.reservoir)
+        q = fv_mean_step(q, grid.dx, dt, [tuple(b) for b in boundary], grid.reservoir, ubar)
     np.testing.assert_allclose(q1, q, rtol=1e-11, atol=0)
 
 
