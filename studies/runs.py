@@ -13,7 +13,7 @@ import h5py
 import numpy as np
 
 import ti_dk
-from ti_dk.output import files
+from ti_dk.output import claim, files
 from ti_dk.scene import load
 from ti_dk.control.runtime import Stats
 
@@ -78,7 +78,7 @@ class Runs:
     def get(self, tag: str, name: str, **keys) -> Run:
         scene = self.scene(name, **keys)
         out = self.root / tag
-        path = files.Outputs.of(out, scene).run_file
+        path = claim.Outputs.of(out, scene).run_file
         if self.rerun or not recorded(path, scene):  # a stale or unwanted file is replaced
             ti_dk.run(scene, out=out, progress=self.progress, frames=False, snapshots=False, overwrite=True)
         return read_run(path, scene)

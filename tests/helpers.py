@@ -25,9 +25,15 @@ def as_counts(stats, row, vol):
             "skewness": stats.skewness[row], "kurtosis": stats.kurtosis[row]}
 
 
+def user_env() -> dict:
+    """The environment of a command as a user runs it, importing the ti_dk under test (this tree's,
+    not whichever one is installed), from any folder."""
+    return dict(os.environ, PYTHONWARNINGS="ignore", PYTHONPATH=str(ROOT))
+
+
 def command(module, *args, cwd=ROOT):
     """``python -m <module> <args>`` as a user runs it (from the repository root by default)."""
-    env = dict(os.environ, PYTHONWARNINGS="ignore")
+    env = user_env()
     return subprocess.run([sys.executable, "-m", module, *args], cwd=cwd, env=env, capture_output=True, text=True,
                           timeout=600)
 
@@ -68,3 +74,11 @@ def fv_mean_step(q, dx, dt, boundary, reservoir, ubar=None):
             F[n] = 0.0
         out += np.moveaxis(dt * (F[1:] - F[:-1]) / h, 0, a)
     return out
+
+
+def file_tree(folder: Path) -> dict[str, str]:
+    """Every file under ``folder`` (hidden ones included) with the SHA-256 of its bytes."""
+    import hashlib
+
+    return {str(p.relative_to(folder)): hashlib.sha256(p.read_bytes()).hexdigest()
+            for p in sorted(folder.rglob("*")) if p.is_file()}

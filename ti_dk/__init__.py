@@ -4,6 +4,13 @@ Djurdjevac, Almgren and Bell.
 Importing ti_dk never starts Taichi; :func:`run` does (CPU unless told), or call :func:`init`.
 """
 import os
+import sys
+
+if " -m ti_dk.scene " in f" {' '.join(getattr(sys, 'orig_argv', []))} ":
+    # the command line (python -m ti_dk.scene): its stop-signal handlers go in before the seconds of imports below
+    from .control.signals import catch_early
+
+    catch_early()
 
 # Taichi prints a "[Taichi] version ..." banner when imported unless this is false; this runs before
 # any ti_dk module imports taichi, so the banner is off for every entry point.

@@ -70,13 +70,53 @@ def test_restart_is_bitwise_identical(tmp_path):
         assert np.array_equal(a["frames/compare_negative_cells"][:], b["frames/compare_negative_cells"][:])
         assert b.attrs["complete"]
     assert [p.name for p in whole.frames] == [p.name for p in resumed.frames]
+    assert min(resumed.timing.values()) >= 0 and resumed.timing["other"] < resumed.timing["total"]
 
 
 def test_restart_refuses_other_settings(tmp_path):
     scene = load_scene("void1d", ensemble=4, t_end=0.0005)
     run(scene, out=tmp_path, checkpoint_every=10)
-    with pytest.raises(ti_dk.ConfigError, match="other scene settings"):
+    with pytest.raises(ti_dk.ConfigError, match=r"other settings \(method.ensemble: checkpoint 4, now 5\)"):
         run(load_scene("void1d", ensemble=5, t_end=0.0005), restart=tmp_path / "void1d_fv_checkpoint.h5")
+
+
+def test_a_stopped_run_keeps_the_diagnostics_of_every_step_done(tmp_path, monkeypatch):
+    """Stopped at step 7, between flushes (no checkpoint, no row there): all 7 steps in the file."""
+    import os
+    import signal
+
+    from ti_dk.control import handlers
+    from ti_dk.control.runtime import Stopped, stop_on_signals
+
+    append = handlers.Diagnostics.append
+
+    def signal_at_7(self, t, d):
+        append(self, t, d)
+        if len(self.diag["time"]) == 7:
+            os.kill(os.getpid(), signal.SIGINT)
+
+    monkeypatch.setattr(handlers.Diagnostics, "append", signal_at_7)
+    scene = load_scene("void1d", ensemble=2, cells=[16], t_end=0.004, output_times=[0.0])
+    assert scene.n_steps > 7
+    with stop_on_signals(), pytest.raises(Stopped, match="stopped by SIGINT at step 7 of"):
+        run(scene, out=tmp_path)
+    with h5py.File(tmp_path / "void1d_fv.h5") as f:
+        assert not f.attrs["complete"] and "SIGINT" in f.attrs["error"]
+        assert f["diagnostics/time"].shape == (7,) and f["diagnostics/mass"].shape == (7,)
+
+
+def test_a_run_far_past_its_estimate_says_so_once(monkeypatch, capsys):
+    from ti_dk.control import controller
+    from ti_dk.control.handlers import Clock
+
+    monkeypatch.setattr(controller, "OVERDUE_SECONDS", 0.0)
+    scene = load_scene("void1d", ensemble=2, t_end=0.0005)
+    bar = controller.StepBar(scene, 0, False, Clock({}, type("S", (), {"timing": {}})()), estimate=0.0)
+    for n in range(1, 6):
+        bar.starting()
+        bar.stepped(n)
+    err = capsys.readouterr().err
+    assert err.count("ti_dk: note: ") == 1 and "more than 3x the estimate; 2 of 80 steps done" in err, err
 
 
 # -- the extremes: each runs correctly or is refused with a message, never a silent NaN ------

@@ -1,5 +1,6 @@
 """openPMD snapshots read back by a third-party reader (openPMD-viewer); the recorded version."""
 import json
+import os
 import sys
 
 import h5py
@@ -10,7 +11,7 @@ from openpmd_viewer import OpenPMDTimeSeries
 import ti_dk
 from ti_dk import load_scene, run
 
-from ..helpers import ROOT
+from ..helpers import ROOT, file_tree
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -70,7 +71,7 @@ def test_snapshots_pass_the_openpmd_validator(tmp_path):
 
 def test_outputs_stay_inside_out_and_lock_one_run(tmp_path):
     from ti_dk import ConfigError
-    from ti_dk.output.files import Outputs
+    from ti_dk.output.claim import Outputs
 
     scene = load_scene("void1d")
     o = Outputs.of(tmp_path, scene)
@@ -85,7 +86,8 @@ def test_outputs_stay_inside_out_and_lock_one_run(tmp_path):
 
 
 def test_chunk_and_frame_names_and_openpmd_ids(tmp_path):
-    from ti_dk.output.files import Outputs, frame_file, pack_ids
+    from ti_dk.output.claim import Outputs
+    from ti_dk.output.files import frame_file, pack_ids
 
     o = Outputs.of(tmp_path, load_scene("void1d"))
     assert o.chunk(12).parent == o.chunks and o.chunk(12).name == "chunk_000000012.h5"
@@ -99,7 +101,8 @@ def test_chunk_and_frame_names_and_openpmd_ids(tmp_path):
 
 
 def test_run_file_rows_and_attributes(tmp_path):
-    from ti_dk.output.files import Outputs, RunFile
+    from ti_dk.output.claim import Outputs
+    from ti_dk.output.files import RunFile
 
     scene = load_scene("void1d", ensemble=2, cells=[4], histogram=[0, 3])
     rf = RunFile.of(Outputs.of(tmp_path, scene), scene)
@@ -107,7 +110,7 @@ def test_run_file_rows_and_attributes(tmp_path):
     rf.write_rows([0.0, 0.5], [row, row])
     rf.annotate("timing", {"io": 1.0})
     rf.close(1.0)
-    with h5py.File(rf.path) as f:
+    with h5py.File(rf.at) as f:
         assert f["stats/time"][:].tolist() == [0.0, 0.5] and f["stats/histogram"].shape == (2, 4, 4)
         assert json.loads(f.attrs["timing"]) == {"io": 1.0} and f.attrs["complete"]
 
@@ -152,3 +155,234 @@ def test_every_dataset_states_its_units_and_one_member_omits_the_ensemble_only_m
         mass = f["diagnostics/mass"][-1]
         assert np.isclose(mass, res.final_density.sum() * scene.grid.cell_volume)  # all three members
         assert mass > 2.5 * res.final_density[0].sum() * scene.grid.cell_volume
+# -- hostile outputs: links, foreign files, failed replaces, locks --------------------------------
+def _scene2d(cells=16, t_end=0.002):
+    """A 2D scene cheap enough to run many times: a run file, frames and snapshots."""
+    return load_scene("ellipse2d", method="fv", compare="none", cells=[cells, cells], t_end=t_end,
+                      output_times=[0.0, 0.001])
+
+
+@pytest.fixture
+def finished(tmp_path):
+    """A complete result (run file, frames, snapshots) in tmp_path/out and the tree of its bytes."""
+    out = tmp_path / "out"
+    run(_scene2d(), out=out)
+    tree = file_tree(out)
+    assert any("frames/frame_" in k for k in tree) and any("openpmd/data" in k for k in tree), tree
+    return out, tree
+
+
+def _shape(out):
+    with h5py.File(out / "ellipse2d_fv.h5") as f:
+        return f["stats/mean"].shape[1:], bool(f.attrs["complete"])
+
+
+@pytest.mark.parametrize("part", ["run_file", "frames", "snapshots", "checkpoint", "lock", "stage", "movie"])
+@pytest.mark.parametrize("inside", [True, False])
+def test_a_link_at_any_output_path_is_refused_and_its_target_untouched(tmp_path, part, inside):
+    from ti_dk import ConfigError
+    from ti_dk.output.claim import Outputs
+
+    out = tmp_path / "out"
+    out.mkdir()
+    target = (out if inside else tmp_path) / "precious.h5"
+    target.write_bytes(b"precious bytes")
+    link = getattr(Outputs.of(out, _scene2d()), part)
+    link.symlink_to(target)
+    with pytest.raises(ConfigError, match="is a symbolic link: ti_dk never writes through links"):
+        run(_scene2d(), out=out, overwrite=True, checkpoint_every=5)
+    assert target.read_bytes() == b"precious bytes" and link.is_symlink()
+    assert sorted(p.name for p in out.iterdir()) == sorted({"precious.h5", link.name} if inside else {link.name})
+
+
+@pytest.mark.parametrize("what, message", [
+    ("text", "is not a ti_dk run file"),
+    ("hdf5", "is not a ti_dk run file"),
+    ("empty", "is not a ti_dk run file"),
+    ("folder", "is a folder that ti_dk did not write"),
+    ("frames_file", "is a file that ti_dk did not write"),
+])
+@pytest.mark.parametrize("overwrite", [False, True])
+def test_a_foreign_file_at_the_run_path_is_refused_even_with_overwrite(tmp_path, what, message, overwrite):
+    from ti_dk import ConfigError
+
+    out = tmp_path / "out"
+    out.mkdir()
+    path = out / ("ellipse2d_fv_frames" if what == "frames_file" else "ellipse2d_fv.h5")
+    if what == "hdf5":
+        with h5py.File(path, "w") as f:
+            f["data"] = np.arange(5)
+            f.attrs["complete"] = True  # says complete, but is not ours
+    elif what == "folder":
+        path.mkdir()
+        (path / "notes.txt").write_text("mine")
+    elif what != "empty":
+        path.write_text("my notes, not a run")
+    else:
+        path.touch()
+    before = file_tree(out)
+    with pytest.raises(ConfigError, match=message):
+        run(_scene2d(), out=out, overwrite=overwrite)
+    assert file_tree(out) == before and sorted(p.name for p in out.iterdir()) == [path.name]
+
+
+def _failing(monkeypatch, where, after):
+    """Make ``where`` fail with an I/O error from its ``after``-th call on: ENOSPC for the space check
+    before every write, EACCES for the frame writer, ENOSPC for the lock's pid."""
+    import errno
+
+    from ti_dk.output import claim, files, render
+
+    calls = {"n": 0}
+    target, name, code = {"space": (files, "require_space", errno.ENOSPC),
+                          "frames": (render.FrameWriter, "write", errno.EACCES),
+                          "lock": (claim.os, "pwrite", errno.ENOSPC)}[where]
+    real = getattr(target, name)
+
+    def fail(*args, **kw):
+        calls["n"] += 1
+        if calls["n"] > after:
+            raise OSError(code, os.strerror(code), "injected")
+        return real(*args, **kw)
+
+    monkeypatch.setattr(target, name, fail)
+    return calls
+
+
+@pytest.mark.parametrize("where, after", [("space", 0), ("space", 3), ("space", 8), ("frames", 0), ("frames", 2),
+                                          ("lock", 0)])
+def test_a_failed_overwrite_leaves_the_old_result_byte_identical(finished, monkeypatch, where, after):
+    """Disk full at the start or half-way, permission denied for a frame, disk full while locking."""
+    from ti_dk.output.files import OutputError
+
+    out, before = finished
+    calls = _failing(monkeypatch, where, after)
+    with pytest.raises(OutputError) as err:
+        run(_scene2d(8), out=out, overwrite=True)
+    assert calls["n"] > after  # it did fail where asked
+    assert "\n" not in str(err.value) and ("free space" in str(err.value)) == (where != "frames"), str(err.value)
+    assert file_tree(out) == before  # no lock, no stage, nothing of the new run
+    monkeypatch.undo()
+    run(_scene2d(8), out=out, overwrite=True)  # a successful one replaces them all
+    after_tree = file_tree(out)
+    assert _shape(out) == ((8, 8), True)
+    assert {k.split("/")[0] for k in after_tree} == {k.split("/")[0] for k in before}  # the same parts, all new
+    assert not set(after_tree.items()) & set(before.items()), "every file of the old result replaced"
+    for p in (out / "ellipse2d_fv_openpmd").glob("data*.h5"):
+        with h5py.File(p) as f:
+            assert f[f"data/{next(iter(f['data']))}/meshes/density"].shape == (8, 8)
+
+
+def test_a_reader_holding_the_old_file_neither_blocks_nor_sees_a_torn_replace(finished):
+    """Another process reads the old result (HDF5's own file lock held) all through the replace."""
+    import subprocess
+
+    out, before = finished
+    script = ("import sys, h5py; f = h5py.File(sys.argv[1], 'r'); old = f['stats/mean'][()].tobytes(); "
+              "print('open', flush=True); sys.stdin.readline(); "
+              "print(f['stats/mean'][()].tobytes() == old and bool(f.attrs['complete']), flush=True)")
+    reader = subprocess.Popen([sys.executable, "-c", script, str(out / "ellipse2d_fv.h5")], stdin=subprocess.PIPE,
+                              stdout=subprocess.PIPE, text=True)
+    try:
+        assert reader.stdout.readline() == "open\n"
+        res = run(_scene2d(8), out=out, overwrite=True)
+        reader.stdin.write("\n")
+        reader.stdin.flush()
+        assert reader.stdout.readline() == "True\n"  # the old file, whole, to the end of its reading
+    finally:
+        reader.kill()
+        reader.wait()
+    assert res.path == out / "ellipse2d_fv.h5" and _shape(out) == ((8, 8), True)
+    assert not [p for p in out.iterdir() if p.name.startswith(".") or p.suffix == ".lock"]
+
+
+def test_a_stopped_replace_keeps_the_old_result_and_its_restart_finishes_bit_for_bit(finished, tmp_path,
+                                                                                        monkeypatch):
+    import signal
+
+    from ti_dk.control import handlers
+    from ti_dk.control.runtime import Stopped, stop_on_signals
+
+    out, before = finished
+    scene = _scene2d(8, t_end=0.01)  # 10 steps
+    whole = run(scene, out=tmp_path / "whole", checkpoint_every=3)
+    write = handlers.Checkpoints.write
+
+    def stop_after(self, n):  # SIGTERM right after the first checkpoint
+        write(self, n)
+        os.kill(os.getpid(), signal.SIGTERM)
+
+    monkeypatch.setattr(handlers.Checkpoints, "write", stop_after)
+    with stop_on_signals(), pytest.raises(Stopped, match="stopped by SIGTERM at step 3") as err:
+        run(scene, out=out, overwrite=True, checkpoint_every=3)
+    assert "is marked incomplete" not in str(err.value)  # the complete one in place is kept
+    monkeypatch.undo()
+    tree = file_tree(out)
+    assert {k: v for k, v in tree.items() if not k.startswith((".", "ellipse2d_fv_checkpoint"))} == before
+    with h5py.File(out / ".ellipse2d_fv.partial" / "ellipse2d_fv.h5") as f:  # what the stopped run wrote
+        assert not f.attrs["complete"] and f["diagnostics/time"].shape == (3,)  # flushed up to the stop
+    res = run(scene, out=out, overwrite=True, restart=out / "ellipse2d_fv_checkpoint.h5")
+    assert np.array_equal(res.final_density, whole.final_density)
+    assert np.array_equal(res.stats.mean, whole.stats.mean) and _shape(out) == ((8, 8), True)
+    assert sorted(p.name for p in (out / "ellipse2d_fv_frames").iterdir()) == \
+        sorted(p.name for p in (tmp_path / "whole" / "ellipse2d_fv_frames").iterdir())
+    with h5py.File(res.path) as f:
+        timing = json.loads(f.attrs["timing"])
+        assert min(timing.values()) >= 0 and timing["total"] >= sum(v for k, v in timing.items() if k != "total")
+    assert not (out / ".ellipse2d_fv.partial").exists()
+
+
+def test_a_stale_lock_is_named_and_taken_over_and_every_lock_is_removed(tmp_path, capsys):
+    import subprocess
+
+    from ti_dk import ConfigError
+    from ti_dk.output.claim import Outputs
+
+    o = Outputs.of(tmp_path, load_scene("void1d"))
+    o.lock.write_text("4242\n")  # left by a run that crashed
+    with o.claim():
+        assert o.lock.read_text() == f"{os.getpid()}\n"
+    assert "was left by run pid 4242" in capsys.readouterr().err and not o.lock.exists()
+    with o.claim():  # no lock left: nothing said
+        pass
+    assert capsys.readouterr().err == "" and not o.lock.exists()
+    holder = subprocess.Popen([sys.executable, "-c", "import fcntl, os, sys, time; fd = os.open(sys.argv[1], "
+                               "os.O_RDWR | os.O_CREAT); fcntl.flock(fd, fcntl.LOCK_EX); os.write(fd, b'777'); "
+                               "print('held', flush=True); time.sleep(60)", str(o.lock)], stdout=subprocess.PIPE)
+    try:
+        assert holder.stdout.readline() == b"held\n"
+        with pytest.raises(ConfigError, match=r"being written by another run \(pid 777\)"):
+            with o.claim():
+                pass
+        assert o.lock.exists()  # the holder's: not removed by the refused run
+    finally:
+        holder.kill()
+        holder.wait()
+
+
+
+def test_a_restart_in_place_writes_no_frame_through_a_link_planted_among_the_frames(tmp_path, monkeypatch):
+    import signal
+
+    from ti_dk.control import handlers
+    from ti_dk.control.runtime import Stopped, stop_on_signals
+
+    scene, out = _scene2d(8, t_end=0.01), tmp_path / "out"  # frames at steps 0, 1 and 10
+    write = handlers.Checkpoints.write
+
+    def stop_after(self, n):
+        write(self, n)
+        os.kill(os.getpid(), signal.SIGTERM)
+
+    monkeypatch.setattr(handlers.Checkpoints, "write", stop_after)
+    with stop_on_signals(), pytest.raises(Stopped, match="is marked incomplete; resume with --restart"):
+        run(scene, out=out, checkpoint_every=3)
+    monkeypatch.undo()
+    frames = out / "ellipse2d_fv_frames"
+    assert sorted(p.name for p in frames.iterdir()) == ["frame_0000.png", "frame_0001.png"]
+    precious = tmp_path / "precious.png"
+    precious.write_bytes(b"not yours")
+    (frames / "frame_0002.png").symlink_to(precious)
+    run(scene, out=out, restart=out / "ellipse2d_fv_checkpoint.h5")
+    assert precious.read_bytes() == b"not yours" and not (frames / "frame_0002.png").is_symlink()
+    assert _shape(out) == ((8, 8), True)

@@ -2,8 +2,10 @@
 before anything of it is loaded."""
 from __future__ import annotations
 
+import hashlib
 import json
 import math
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -11,7 +13,8 @@ import h5py
 import numpy as np
 
 from ..scene.schema import ConfigError, Scene
-from ..output.files import atomic_h5, read_group, read_rows, require_space, same_scene, scene_json, write_group, write_rows
+from ..output.files import (atomic_h5, package_version, read_group, read_rows, require_space, same_scene, scene_json,
+                            write_group, write_rows)
 from ..methods.solver import Solver
 
 
@@ -26,6 +29,10 @@ class Progress:
     frames: dict = field(default_factory=lambda: {"time": [], "negative_cells": []})  # per frame
     pooled: dict | None = None  # stationary runs: the pooled accumulator's state
     timing: dict = field(default_factory=dict)  # seconds per part of the run
+    wall: float = 0.0  # seconds the run had taken when the checkpoint was written
+
+
+FORMAT = 2  # the checkpoint layout; a file of a newer one is refused (1: no version, no digest)
 
 
 def write_checkpoint(path: Path, scene: Scene, solver: Solver, other: Solver | None, prog: Progress) -> None:
@@ -33,8 +40,9 @@ def write_checkpoint(path: Path, scene: Scene, solver: Solver, other: Solver | N
     states = {name: s.state() for name, s in (("solver", solver), ("compare", other)) if s is not None}
     require_space(path, sum(v.nbytes for st in states.values() for v in st.values()))
     with atomic_h5(path) as f:  # interrupted (SIGTERM): the previous checkpoint stays the latest
+        f.attrs["format"], f.attrs["ti_dk"] = FORMAT, package_version()
         f.attrs["scene"] = scene_json(scene)
-        f.attrs["step"] = prog.step
+        f.attrs["step"], f.attrs["wall"] = prog.step, prog.wall
         f.attrs["timing"] = json.dumps(prog.timing | ({"hybrid": dict(solver.timing)} if solver.timing else {}))
         for name, st in states.items():
             write_group(f, name, st)
@@ -43,30 +51,93 @@ def write_checkpoint(path: Path, scene: Scene, solver: Solver, other: Solver | N
         write_group(f, "diag", prog.diag)
         write_group(f, "frames", prog.frames)
         write_group(f, "pooled", prog.pooled or {})
+        f.attrs["digest"] = content_digest(f)
 
 
-def read_checkpoint(path: Path, scene: Scene, solver: Solver, other: Solver | None) -> Progress:
-    """The progress a checkpoint holds, loaded into the solvers after :func:`checkpoint_problem`
-    found nothing wrong with it; anything else is refused with one line."""
-    damaged = f"--restart {path}: damaged checkpoint"
+def content_digest(f) -> str:
+    """SHA-256 over every attribute (but ``digest``) and every dataset's name, type, shape and bytes:
+    a member's or a cell's values moved, even with the mass unchanged, change it."""
+    h = hashlib.sha256()
+    for k in sorted(f.attrs):
+        if k != "digest":
+            h.update(f"{k}={f.attrs[k]!r};".encode())
+    names: list[str] = []
+    f.visititems(lambda name, obj: names.append(name) if isinstance(obj, h5py.Dataset) else None)
+    for name in sorted(names):
+        v = np.ascontiguousarray(f[name][()])
+        h.update(f"{name}:{v.dtype.str}:{v.shape};".encode())
+        h.update(v.tobytes())
+    return h.hexdigest()
+
+
+def _release(version: str) -> tuple[int, ...]:
+    """``"1.2.3rc1"`` as ``(1, 2, 3)``, to compare releases; ``()`` when it names none."""
+    return tuple(int(p) for p in re.findall(r"\d+", version.split("+")[0])[:3])
+
+
+def check_checkpoint_file(path: Path, scene: Scene) -> None:
+    """Refuse, before the run claims its output, a file that is not a checkpoint, one of a newer
+    format or ti_dk, one whose content differs from its digest, or one of other scene settings
+    (naming each setting that differs, with both values)."""
     try:
         f = h5py.File(path, "r")
     except OSError as exc:
         raise ConfigError(f"--restart {path}: not a readable checkpoint ({str(exc).splitlines()[0]}); give a file "
                           "written by --checkpoint-every") from None
     with f:
+        a = f.attrs
+        if "scene" not in a or "step" not in a:
+            raise ConfigError(f"--restart {path}: not a ti_dk checkpoint; give a file written by --checkpoint-every")
         try:
-            if "scene" not in f.attrs or "step" not in f.attrs:
-                raise ConfigError(f"--restart {path}: not a ti_dk checkpoint; give a file written by --checkpoint-every")
+            fmt, by = int(a.get("format", 1)), str(a.get("ti_dk", "unknown"))
+            if fmt > FORMAT or _release(by) > _release(package_version()) > ():
+                raise ConfigError(f"--restart {path}: written by ti_dk {by} (checkpoint format {fmt}), newer than this "
+                                  f"ti_dk {package_version()} (format {FORMAT}); restart with that version or from the start")
+            if fmt < FORMAT or "digest" not in a:
+                raise ConfigError(f"--restart {path}: an old checkpoint without a content digest (format {fmt}); "
+                                  "restart from the start")
             if not same_scene(f, scene):
-                raise ConfigError(f"--restart {path}: the checkpoint was written for other scene settings; "
-                                  "restart with the same scene, method and --set values")
+                raise ConfigError(f"--restart {path}: the checkpoint was written for other settings ("
+                                  + scene_difference(json.loads(a["scene"]), json.loads(scene_json(scene)))
+                                  + "); restart with its settings")
+            if content_digest(f) != str(a["digest"]):
+                raise ConfigError(f"--restart {path}: damaged checkpoint (its content differs from its digest); "
+                                  "restart from another checkpoint or from the start")
+        except (KeyError, ValueError, TypeError, OSError, RecursionError, AttributeError) as exc:
+            if isinstance(exc, ConfigError):
+                raise
+            raise ConfigError(f"--restart {path}: damaged checkpoint ({type(exc).__name__}); restart from another "
+                              "checkpoint or from the start") from None
+
+
+def scene_difference(theirs: dict, ours: dict, prefix: str = "") -> str:
+    """Each setting that differs between two scenes' dicts, as ``key: checkpoint X, now Y``."""
+    out = []
+    for k in sorted(set(theirs) | set(ours)):
+        a, b = theirs.get(k, "absent"), ours.get(k, "absent")
+        if k == "pool_layout" or a == b:
+            continue
+        if isinstance(a, dict) and isinstance(b, dict):
+            out += [scene_difference(a, b, f"{prefix}{k}.")] if scene_difference(a, b) else []
+        else:
+            out.append(f"{prefix}{k}: checkpoint {json.dumps(a)}, now {json.dumps(b)}")
+    return "; ".join(out)
+
+
+def read_checkpoint(path: Path, scene: Scene, solver: Solver, other: Solver | None) -> Progress:
+    """The progress a checkpoint holds, loaded into the solvers after :func:`checkpoint_problem`
+    found nothing wrong with it; anything else is refused with one line."""
+    damaged = f"--restart {path}: damaged checkpoint"
+    check_checkpoint_file(path, scene)
+    with h5py.File(path, "r") as f:
+        try:
             states = {name: read_group(f[name]) for name in ("solver", "compare") if name in f}
             timing = json.loads(f.attrs["timing"])
             prog = Progress(step=int(f.attrs["step"]), times=list(f["times"][()]), timing=timing, rows=read_rows(f),
                              diag={k: list(v) for k, v in read_group(f["diag"]).items()},
                              frames={k: list(v) for k, v in read_group(f["frames"]).items()},
-                             pooled=read_group(f["pooled"]) or None if "pooled" in f else None)
+                             pooled=read_group(f["pooled"]) or None if "pooled" in f else None,
+                             wall=float(f.attrs.get("wall", 0.0)))
         except (KeyError, ValueError, TypeError, OSError) as exc:
             if isinstance(exc, ConfigError):
                 raise

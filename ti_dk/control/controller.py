@@ -12,10 +12,12 @@ import numpy as np
 from tqdm import tqdm
 
 from .checkpoint import Progress, read_checkpoint
+from ..scene.estimates import work_estimate
 from ..scene.load import check_options
 from ..scene.schema import Scene
 from .handlers import Checkpoints, Clock, Diagnostics, Frames, Snapshots, Statistics
-from ..output.files import Outputs, RunFile, output_error
+from ..output.claim import Outputs
+from ..output.files import RunFile, is_complete, output_error
 from ..methods.registry import make_solver  # also where tests and benchmarks build a solver
 from .runtime import Result, SimulationError, check_stop, init, initialized, stats_of
 from ..methods.solver import Solver
@@ -54,19 +56,22 @@ def run(scene: Scene, out: str | Path | None = None, progress: bool | None = Non
     ``restart`` continues from such a file, bit for bit as if never interrupted. ``member0``: the
     global index of the first member (a chunk of a larger ensemble, see :mod:`ti_dk.ensemble`).
 
-    Every path lies inside ``out`` (:class:`ti_dk.io.Outputs`); the run holds an exclusive lock on
-    it, so a second run there is refused, and replaces a complete result only with ``overwrite``.
+    Every path lies inside ``out`` (:class:`ti_dk.output.claim.Outputs`); the run holds an exclusive
+    lock on it, so a second run there is refused, and replaces a complete result only with
+    ``overwrite`` and only once it has finished (the old one stays whole if it fails or stops).
     A signal seen by :func:`ti_dk.runtime.stop_on_signals` stops it between steps
     (:class:`ti_dk.runtime.Stopped`); an I/O failure raises :class:`ti_dk.io.OutputError`; both
     leave the file marked incomplete.
     """
-    check_options(scene, out=out, threads=threads, checkpoint_every=checkpoint_every, restart=restart, movie=movie)
+    check_options(scene, out=out, threads=threads, checkpoint_every=checkpoint_every, restart=restart, movie=movie,
+                  frames=frames)
     opts = RunOptions(progress, arch, threads, frames, movie, snapshots, checkpoint_every,
                       Path(restart) if restart is not None else None, member0)
     if out is None:
         return _run(scene, None, opts)
     outputs = Outputs.of(out, scene)
-    with outputs.claim(overwrite, fresh=restart is None):
+    check_stop()
+    with outputs.claim(overwrite, fresh=restart is None) as outputs:
         try:
             return _run(scene, outputs, opts)
         except OSError as exc:  # disk full, quota, permission: the run file is already closed
@@ -81,15 +86,16 @@ def _run(scene: Scene, outputs: Outputs | None, opts: RunOptions) -> Result:
     wall0 = time.perf_counter()
     solver, other = _solvers(scene, opts.member0)
     prog = read_checkpoint(opts.restart, scene, solver, other) if opts.restart is not None else Progress()
-    ctl = Controller(scene, solver, other, outputs, prog, opts)
+    check_stop()
+    ctl = Controller(scene, solver, other, outputs, prog, opts, wall0)
     ctl.clock.add("setup", wall0)  # solvers built and initialised (their kernels compiled), checkpoint read
     show = sys.stderr.isatty() if opts.progress is None else opts.progress
     try:
         if opts.restart is None:
             ctl.record(0)
-        with StepBar(scene, prog.step, show, ctl.clock) as bar:
+        with StepBar(scene, prog.step, show, ctl.clock, work_estimate(scene)[1]) as bar:
             for n in range(prog.step, scene.n_steps):
-                check_stop(f" at step {n} of {scene.n_steps}", ctl.rf, ctl.checkpoints.latest)
+                check_stop(f" at step {n} of {scene.n_steps}", ctl.stopped_file, ctl.checkpoints.latest)
                 bar.starting()
                 ctl.advance(n)
                 ctl.record(n + 1)
@@ -99,13 +105,13 @@ def _run(scene: Scene, outputs: Outputs | None, opts: RunOptions) -> Result:
         ctl.draw_structure_factor()
     except OverflowError as exc:
         if ctl.rf:
-            ctl.rf.close(time.perf_counter() - wall0, error=str(exc))
+            ctl.rf.close(ctl.wall(), error=str(exc))
         raise SimulationError(str(exc)) from None
     except BaseException as exc:
         if ctl.rf:
-            _close_quietly(ctl.rf, time.perf_counter() - wall0, f"{type(exc).__name__}: {exc}")
+            _close_quietly(ctl, str(exc) if isinstance(exc, SimulationError) else f"{type(exc).__name__}: {exc}")
         raise
-    return ctl.finish(time.perf_counter() - wall0)
+    return ctl.finish(ctl.wall())
 
 
 def _solvers(scene: Scene, member0: int) -> tuple[Solver, Solver | None]:
@@ -124,9 +130,10 @@ class Controller:
     output handlers, asked in order after every step whether they are due."""
 
     def __init__(self, scene: Scene, solver: Solver, other: Solver | None, outputs: Outputs | None,
-                 prog: Progress, opts: RunOptions):
+                 prog: Progress, opts: RunOptions, wall0: float):
         self.scene, self.solver, self.other = scene, solver, other
         self.outputs = outputs  # every path the run writes, or None
+        self.wall0 = wall0 - prog.wall  # when the run began (perf_counter), a restarted one's earlier part included
         self.clock = Clock(prog.timing, solver)  # seconds per part of the run
         self.rf = RunFile.of(outputs, scene) if outputs else None  # statistics and diagnostics
         frames = outputs is not None and (opts.frames is not False or opts.movie)
@@ -139,19 +146,27 @@ class Controller:
         writer = _frame_writer(outputs, scene, other) if frames else None
         self.frames = Frames(scene, solver, other, writer, steps, prog.frames, self.statistics)
         draw_snapshots = outputs is not None and scene.grid.dim >= 2 and opts.snapshots is not False
-        self.snapshots = Snapshots(scene, solver, outputs.snapshots if draw_snapshots else None)
+        self.snapshots = Snapshots(scene, solver, outputs.staged(outputs.snapshots) if draw_snapshots else None)
         every = opts.checkpoint_every
         self.checkpoints = Checkpoints(scene, (solver, other), outputs.checkpoint if outputs and every else None,
                                        every, self.progress, self.diagnostics, opts.restart)
         self.handlers = (self.statistics, self.frames, self.snapshots, self.diagnostics, self.checkpoints)
         self.written = self._written()  # every file or folder written, by what it holds
+        # the file a stopped run leaves marked incomplete: not when it replaces a complete result, which stays
+        self.stopped_file = self.rf.path if self.rf and not is_complete(self.rf.path) else None
 
     def _written(self) -> dict[str, Path]:
+        """Every file or folder the run writes, by what it holds, where it lies once the run ends."""
+        o = self.outputs
         where = {"statistics and diagnostics": self.rf and self.rf.path,
-                 "frames": self.frames.writer and self.frames.writer.dir,
-                 "openPMD snapshots": self.snapshots.directory, "checkpoint": self.checkpoints.path,
+                 "frames": self.frames.writer and o.frames,
+                 "openPMD snapshots": self.snapshots.directory and o.snapshots, "checkpoint": self.checkpoints.path,
                  "structure factor": self.spectrum_png}
         return {what: path for what, path in where.items() if path}
+
+    def wall(self) -> float:
+        """Seconds the run has taken, a restarted run's earlier part included."""
+        return time.perf_counter() - self.wall0
 
     def advance(self, n: int) -> None:
         """Step ``n`` → ``n + 1`` of both solvers; their diagnostics kept; a NaN mass refused."""
@@ -181,13 +196,14 @@ class Controller:
         """What the run has produced by step ``n`` (a checkpoint's content, with the solver states)."""
         st = self.statistics
         return Progress(step=n, rows=st.rows, times=st.times, diag=self.diagnostics.diag, frames=self.frames.log,
-                        pooled=st.pooled_state(), timing=self.clock.parts)
+                        pooled=st.pooled_state(), timing=self.clock.parts, wall=self.wall())
 
     def make_movie(self) -> None:
         """The MP4 of every frame."""
         if self.frames.writer:
             t0 = time.perf_counter()
-            self.written["movie"] = self.frames.writer.movie(self.outputs.movie)
+            self.frames.writer.movie(self.outputs.staged(self.outputs.movie))
+            self.written["movie"] = self.outputs.movie
             self.clock.add("render", t0)
 
     def draw_structure_factor(self) -> None:
@@ -197,7 +213,8 @@ class Controller:
             from ..output.spectra import draw_structure_factor
 
             t0 = time.perf_counter()
-            draw_structure_factor(self.spectrum_png, self.scene, st.rows[-1], st.row_steps(self.scene.n_steps))
+            staged = self.outputs.staged(self.outputs.frames) / self.spectrum_png.name  # moved into place at the end
+            draw_structure_factor(staged, self.scene, st.rows[-1], st.row_steps(self.scene.n_steps))
             self.clock.add("render", t0)
 
     def finish(self, wall: float) -> Result:
@@ -215,15 +232,22 @@ class Controller:
                       stats=stats_of(st.rows, sc.stats.histogram),
                       diagnostics={k: np.asarray(v) for k, v in self.diagnostics.diag.items()},
                       final_density=self.solver.density(), wall_time=wall, path=self.rf.path if self.rf else None,
-                      regrids=regrids, timing=timing, frames=self.frames.files(), rows=st.rows, written=self.written)
+                      regrids=regrids, timing=timing, rows=st.rows, written=self.written,
+                      frames=[self.outputs.frames / p.name for p in self.frames.files()])
+
+
+OVERDUE_SECONDS, OVERDUE_FACTOR = 60.0, 3.0  # a run past both says how far it is
 
 
 class StepBar:
     """The progress bar of the steps; the first step, which compiles the step kernels, is timed as
     ``compile`` and left out of the rate and the ETA."""
 
-    def __init__(self, scene: Scene, start: int, show: bool, clock: Clock):
+    def __init__(self, scene: Scene, start: int, show: bool, clock: Clock, estimate: float = math.inf):
         self.label = f"{scene.name}/{scene.method.name}"
+        self.start, self.total = start, scene.n_steps
+        self.t0 = time.perf_counter()  # when this part of the run began
+        self.overdue = max(OVERDUE_SECONDS, OVERDUE_FACTOR * estimate)  # said once when passed, from t0
         self.bar = tqdm(total=scene.n_steps, initial=start, disable=not show, unit="step",
                         desc=f"{self.label}: compiling", file=sys.stderr, mininterval=0.5)
         self.clock = clock  # where the first step's time moves to "compile"
@@ -244,9 +268,16 @@ class StepBar:
             self.before = self.clock.all()
 
     def stepped(self, step: int) -> None:
-        """``step`` steps are done (the handlers included)."""
+        """``step`` steps are done (the handlers included); a run far past its estimate says so once."""
         if not self.first:
             self.bar.update()
+            elapsed = time.perf_counter() - self.t0
+            if elapsed > self.overdue:
+                self.overdue = math.inf
+                left = elapsed / (step - self.start) * (self.total - step)
+                self.bar.write(f"ti_dk: note: {elapsed / 60:.3g} min so far, more than {OVERDUE_FACTOR:g}x the "
+                               f"estimate; {step:,} of {self.total:,} steps done, about {left / 60:.3g} min to go",
+                               sys.stderr)
             return
         self.first = False
         self.clock.compiled(self.before, self.t_first)
@@ -269,7 +300,7 @@ def _frame_writer(outputs: Outputs, scene: Scene, other: Solver | None):
     """The frame writer of this scene: moment profiles in 1D, density panels in 2D and 3D."""
     from ..output.render import FrameWriter
 
-    return FrameWriter(outputs.frames, _renderer(scene, other))
+    return FrameWriter(outputs.staged(outputs.frames), _renderer(scene, other))
 
 
 def summary(result: Result) -> str:
@@ -323,11 +354,15 @@ def summary(result: Result) -> str:
     return "\n".join(lines)
 
 
-def _close_quietly(rf: RunFile, wall: float, error: str) -> None:
-    """Mark ``rf`` incomplete on the way out of a failed run; a second failure (the disk still full)
-    must not hide the first."""
+def _close_quietly(ctl: Controller, error: str) -> None:
+    """Mark the run file incomplete on the way out of a failed or stopped run, its diagnostics written
+    up to the last step done; a second failure (the disk still full) must not hide the first."""
     try:
-        rf.close(wall, error=error)
+        ctl.diagnostics.flush(force=True)
+    except (OSError, RuntimeError, ValueError):
+        pass
+    try:
+        ctl.rf.close(ctl.wall(), error=error)
     except OSError:
         pass
 

@@ -21,7 +21,8 @@ from tqdm import tqdm
 from . import controller, runtime
 from ..scene.load import check_options
 from ..scene.schema import ConfigError, Scene
-from ..output.files import (Outputs, RunFile, atomic_h5, output_error, read_group, read_rows, same_scene, scene_json, write_group,
+from ..output.claim import Outputs
+from ..output.files import (RunFile, atomic_h5, output_error, read_group, read_rows, same_scene, scene_json, write_group,
                  write_rows)
 from ..core.stats import CellStats
 
@@ -71,7 +72,7 @@ def run(scene: Scene, executor: str = "local", out: str | Path | None = None, pr
     if out is None:
         return _run_dask(scene, None, progress, chunk, workers, threads, scheduler)
     outputs = Outputs.of(out, scene)
-    with outputs.claim(overwrite):
+    with outputs.claim(overwrite) as outputs:
         try:
             return _run_dask(scene, outputs, progress, chunk, workers, threads, scheduler)
         except OSError as exc:

@@ -53,7 +53,7 @@ class Clock:
         if self.solver.timing:  # its own parts replace "solver"
             timing.pop("solver", None)
         timing = {k: timing[k] for k in TIMING_ORDER if k in timing}
-        timing["other"] = wall - sum(timing.values())
+        timing["other"] = max(0.0, wall - sum(timing.values()))  # wall: a restarted run's earlier part included
         timing["total"] = wall
         return timing
 

@@ -1,12 +1,9 @@
-"""What every run shares: Taichi's start-up, stopping on a signal, the errors and the result types."""
+"""What every run shares: Taichi's start-up and the result types (stop signals and the errors: :mod:`.signals`)."""
 from __future__ import annotations
 
 import contextlib
 import ctypes
 import io
-import os
-import signal
-import threading
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -14,21 +11,9 @@ import numpy as np
 import taichi as ti
 
 from ..scene.schema import ConfigError, Scene
+from .signals import SimulationError, Stopped, check_stop, stop_on_signals  # noqa: F401  (re-exported)
 
 ARCHS = {"cpu": ti.cpu, "cuda": ti.cuda}  # the backends a run may ask for, by their --arch name
-
-
-class SimulationError(RuntimeError):
-    """The run went wrong in a way the user can fix (unstable scheme, too many particles)."""
-
-
-class Stopped(SimulationError):
-    """SIGTERM or SIGINT arrived: the run stopped between two steps, its output closed and marked
-    incomplete. ``status``: the exit status a shell gives for that signal (143, 130)."""
-
-    def __init__(self, message: str, status: int):
-        super().__init__(message)
-        self.status = status  # 128 + the signal's number
 
 
 def init(arch: str = "cpu", threads: int | None = None) -> None:
@@ -100,47 +85,6 @@ def cuda_driver_present() -> bool:
 def initialized() -> bool:
     """Whether Taichi has been started in this process."""
     return ti.lang.impl.get_runtime().prog is not None
-
-
-_STOP: dict = {"signal": None}  # set by the handlers of stop_on_signals(), read between steps
-
-
-@contextlib.contextmanager
-def stop_on_signals():
-    """SIGTERM and SIGINT set a flag that the run checks between steps (and after Taichi's start and
-    the kernels' compilation), instead of raising wherever Python happens to be; handlers restored after."""
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-    def handler(signum, frame):
-        if _STOP["signal"] is not None:  # asked twice: stop at once, the default way
-            signal.signal(signum, signal.SIG_DFL)
-            os.kill(os.getpid(), signum)
-        _STOP["signal"] = signum
-
-    _STOP["signal"] = None
-    old = {s: signal.signal(s, handler) for s in (signal.SIGTERM, signal.SIGINT)}
-    try:
-        yield
-    finally:
-        for s, h in old.items():
-            signal.signal(s, h)
-        _STOP["signal"] = None
-
-
-def check_stop(where: str = " before the first step", rf=None, checkpoint: Path | None = None) -> None:
-    """Raise :class:`Stopped` if a signal arrived: ``rf`` closed and marked incomplete with the reason,
-    and the message names the latest checkpoint only if there is one."""
-    signum = _STOP["signal"]
-    if signum is None:
-        return
-    name = signal.Signals(signum).name
-    if rf is not None:
-        rf.close(error=f"stopped by {name}{where}")
-    msg = f"stopped by {name}{where}"
-    msg += f"; {rf.path} is marked incomplete" if rf is not None else ""
-    msg += f"; resume with --restart {checkpoint}" if checkpoint is not None else ""
-    raise Stopped(msg, 128 + signum)
 
 
 @dataclass(frozen=True)

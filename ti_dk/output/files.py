@@ -2,23 +2,20 @@
 from __future__ import annotations
 
 import errno
-import fcntl
 import json
 import os
 import platform
 import re
+import tempfile
 import time
 from contextlib import contextmanager
-from dataclasses import dataclass
 from importlib import metadata
 from pathlib import Path
 
 import h5py
 import numpy as np
 
-from ..scene.schema import ConfigError
 from .units import units_of
-
 STAT_KEYS = ("mean", "variance", "skewness", "kurtosis")
 
 
@@ -43,7 +40,9 @@ def output_error(path: Path, exc: OSError) -> OutputError:
         found = re.search(r"errno = (\d+)", str(exc))
         code = int(found.group(1)) if found else None
     reason = why.get(code) or exc.strerror or str(exc).splitlines()[0]
-    return OutputError(f"cannot write {path}: {reason}; free space or use another --out")
+    remedy = "free space or give another --out" if code in (errno.ENOSPC, errno.EDQUOT) else \
+        "give another --out" if code == errno.ENAMETOOLONG else "give a directory you can write with --out"
+    return OutputError(f"cannot write {path}: {reason}; {remedy}")
 
 
 SPACE_RESERVE = 1 << 20  # bytes kept free on the output's file system (HDF5 metadata, the closing flush)
@@ -60,86 +59,6 @@ def require_space(path: Path, nbytes: float) -> None:
     st = os.statvfs(folder)
     if st.f_bavail * st.f_frsize < nbytes + SPACE_RESERVE:
         raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(path))
-
-
-@dataclass(frozen=True)
-class Outputs:
-    """Every path a run writes, named once and all inside ``out``.
-
-    ``run_file`` ``<out>/<name>_<method>.h5``, ``frames`` ``…_frames/``, ``snapshots``
-    ``…_openpmd/``, ``checkpoint`` ``…_checkpoint.h5``, ``chunks`` ``…_chunks/`` (Dask) and
-    ``lock`` ``….lock``: the file a run holds an exclusive lock on while it writes any of them.
-    """
-
-    out: Path
-    stem: str
-
-    @classmethod
-    def of(cls, out: str | Path, scene) -> "Outputs":
-        o = cls(Path(out), f"{scene.name}_{scene.method.name}")
-        for p in (o.run_file, o.frames, o.snapshots, o.checkpoint, o.chunks, o.lock):
-            if p.resolve().parent != o.out.resolve():  # the scene name is checked; this is the guarantee
-                raise ValueError(f"{p} would lie outside --out {out}")
-        return o
-
-    run_file = property(lambda self: self.out / f"{self.stem}.h5")
-    frames = property(lambda self: self.out / f"{self.stem}_frames")
-    snapshots = property(lambda self: self.out / f"{self.stem}_openpmd")
-    checkpoint = property(lambda self: self.out / f"{self.stem}_checkpoint.h5")
-    chunks = property(lambda self: self.out / f"{self.stem}_chunks")
-    lock = property(lambda self: self.out / f"{self.stem}.lock")
-    movie = property(lambda self: self.out / f"{self.stem}.mp4")
-    structure_factor = property(lambda self: self.frames / "structure_factor.png")  # S(k) drawn, beside the frames
-
-    @contextmanager
-    def claim(self, overwrite: bool = False, fresh: bool = True):
-        """Hold the exclusive lock for the whole run; refuse a busy output or a complete result.
-
-        A second run on the same output is refused (:class:`ConfigError`), never allowed to touch
-        the first one's files; an existing complete result is replaced only with ``overwrite``. A
-        ``fresh`` run (not a restart) removes the frames and snapshots an earlier run left, so a
-        series never mixes two runs. The lock file stays (removing it could let two runs lock two
-        different files).
-        """
-        try:
-            self.out.mkdir(parents=True, exist_ok=True)
-            fd = os.open(self.lock, os.O_RDWR | os.O_CREAT, 0o644)
-        except OSError as exc:
-            raise ConfigError(f"--out {self.out}: cannot create it ({exc.strerror}); give a directory you can write")
-        try:
-            try:
-                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-            except BlockingIOError:
-                pid = os.pread(fd, 32, 0).decode(errors="replace").strip() or "?"
-                raise ConfigError(f"{self.run_file} is being written by another run (pid {pid}): wait for it to "
-                                "finish or give another --out") from None
-            os.ftruncate(fd, 0)
-            os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
-            if not overwrite and is_complete(self.run_file):
-                raise ConfigError(f"{self.run_file} holds a complete result: add --overwrite to replace it, "
-                                "or give another --out")
-            if fresh:
-                self.clear_pictures()
-            yield self
-        finally:
-            os.close(fd)  # releases the lock
-
-    def chunk(self, member0: int) -> Path:
-        """The file of the finished chunk whose first member is ``member0`` (Dask)."""
-        return self.chunks / f"chunk_{member0:09d}.h5"
-
-    def chunk_files(self) -> list[Path]:
-        """The finished chunks' files, in member order."""
-        return sorted(self.chunks.glob("chunk_*.h5"))
-
-    def clear_pictures(self) -> None:
-        """Remove the frames, movie and snapshots of an earlier run on this output."""
-        for folder, patterns in ((self.frames, ("frame_*.png", self.structure_factor.name)),
-                                 (self.snapshots, ("data*.h5",))):
-            for pattern in patterns:
-                for p in folder.glob(pattern):
-                    p.unlink(missing_ok=True)
-        self.movie.unlink(missing_ok=True)
 
 
 def frame_file(directory: Path, k: int) -> Path:
@@ -195,11 +114,13 @@ class RunFile:
     leaves a readable file that says it is unfinished.
     """
 
-    def __init__(self, path: Path, scene, histogram_bins: int | None = None):
-        path.parent.mkdir(parents=True, exist_ok=True)
-        require_space(path.parent, 64 << 10)
-        self.h5 = h5py.File(path, "w")
-        self.path = path
+    def __init__(self, path: Path, scene, histogram_bins: int | None = None, at: Path | None = None):
+        self.path = path  # the run file's name (where it lies once the run ends)
+        self.at = at or path  # where it is written (``Outputs.staged``)
+        self.at.parent.mkdir(parents=True, exist_ok=True)
+        require_space(self.at.parent, 64 << 10)
+        self.at.unlink(missing_ok=True)  # a new file: never an old one truncated, nor a link followed
+        self.h5 = h5py.File(self.at, "w")
         a = self.h5.attrs
         a["scene"] = scene_json(scene)
         a["versions"] = json.dumps(versions())
@@ -237,10 +158,11 @@ class RunFile:
             ds.attrs[f"k{a}"] = k
 
     @classmethod
-    def of(cls, outputs: Outputs, scene) -> "RunFile":
-        """The run file of ``outputs``, with as many histogram bins as ``scene.stats.histogram`` asks."""
+    def of(cls, outputs, scene) -> "RunFile":
+        """The run file of ``outputs`` (:class:`~ti_dk.output.claim.Outputs`; written at its staged place), with as many histogram bins as
+        ``scene.stats.histogram`` asks."""
         hist = scene.stats.histogram
-        return cls(outputs.run_file, scene, hist[1] - hist[0] + 1 if hist else None)
+        return cls(outputs.run_file, scene, hist[1] - hist[0] + 1 if hist else None, outputs.staged(outputs.run_file))
 
     @staticmethod
     def _grow(group, name, shape, dtype):
@@ -256,7 +178,7 @@ class RunFile:
         ds[n:] = rows
 
     def write_row(self, t: float, row: dict[str, np.ndarray]) -> None:
-        require_space(self.path, sum(np.asarray(v).nbytes for v in row.values()))
+        require_space(self.at, sum(np.asarray(v).nbytes for v in row.values()))
         st = self.h5["stats"]
         self._append(st["time"], [t])
         for k, v in row.items():
@@ -270,7 +192,7 @@ class RunFile:
             self.write_row(t, row)
 
     def write_diagnostics(self, diag: dict[str, list]) -> None:
-        require_space(self.path, 8 * sum(len(v) for v in diag.values()))
+        require_space(self.at, 8 * sum(len(v) for v in diag.values()))
         for k, v in diag.items():
             if k not in self.diag:
                 self._grow(self.diag, k, (), np.asarray(v).dtype if len(v) else np.float64)
@@ -280,7 +202,7 @@ class RunFile:
     def write_table(self, name: str, records: list[dict]) -> None:
         """``/name/<key>``: one dataset per key of equal-keyed records (the hybrid's regrid log)."""
         if records:
-            require_space(self.path, 8 * len(records) * len(records[0]))
+            require_space(self.at, 8 * len(records) * len(records[0]))
             g = self.h5.create_group(name)
             for k in records[0]:
                 _label(g.create_dataset(k, data=np.array([r[k] for r in records])))
@@ -353,10 +275,18 @@ def read_rows(f) -> list[dict]:
 
 @contextmanager
 def atomic_h5(path: Path):
-    """An HDF5 file written under a temporary name and renamed once whole; removed if interrupted,
-    so whatever carries ``path`` is always complete."""
-    tmp = path.with_suffix(path.suffix + ".tmp")
-    f = h5py.File(tmp, "w")
+    """An HDF5 file written under a fresh temporary name (created exclusively, never through a link)
+    and renamed once whole (``rename`` replaces a link at ``path`` rather than following it);
+    removed if interrupted, so whatever carries ``path`` is always complete."""
+    fd, name = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
+    os.fchmod(fd, 0o644)  # as an ordinary file (mkstemp makes it private)
+    os.close(fd)
+    tmp = Path(name)
+    try:
+        f = h5py.File(tmp, "w")
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
     try:
         yield f
         close_h5(f)

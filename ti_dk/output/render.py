@@ -483,6 +483,7 @@ class FrameWriter:
         """Render ``renderer.frame(t, *content)`` to the next PNG."""
         rgb = self.renderer.frame(t, *content)
         path = frame_file(self.dir, len(self.files))
+        path.unlink(missing_ok=True)  # a new file, never written through a link
         iio.imwrite(path, rgb, compress_level=1)  # fast deflate: a third of the time of the default, files ~1.3x
         self.files.append(path)
         return path

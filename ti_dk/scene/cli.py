@@ -65,38 +65,11 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = parse_args(argv)
-    overrides = {}
-    for item in args.set:
-        key, sep, value = item.partition("=")
-        if not sep or not key.strip():
-            return _fail(f"--set {item!r}: write KEY=VALUE, e.g. --set C=0.05")
-        overrides[key.strip()] = load.parse_value(value.strip(), key.strip())
-    for key in ("method", "ensemble", "seed", "t_end"):
-        if getattr(args, key) is not None:
-            overrides[key] = getattr(args, key)
-    with runtime.stop_on_signals():
+    with runtime.stop_on_signals():  # first: a signal from here on stops the run with one line
         try:
-            with warnings.catch_warnings(record=True) as caught:
-                warnings.simplefilter("always", schema.ClampWarning)
-                scene = load.load_scene(args.scene, **overrides)
-                if args.quick and "cells" not in overrides:
-                    scene = load.load_scene(args.scene, **overrides, cells=[max(8, n // 4) for n in scene.grid.cells])
-            for w in caught:
-                print(f"ti_dk: warning: {w.message}", file=sys.stderr)
-            load.check_options(scene, out=args.out, executor=args.executor, workers=args.workers,
-                                 chunk=args.chunk, threads=args.threads, scheduler=args.scheduler,
-                                 checkpoint_every=args.checkpoint_every, restart=args.restart, movie=args.movie)
-            runtime.init(args.arch, args.threads)
-            _announce(scene)
-            if args.executor == "dask":
-                result = ensemble.run(scene, "dask", out=args.out, progress=not args.no_progress, chunk=args.chunk,
-                                      workers=args.workers or 2, threads=args.threads or 1,
-                                      scheduler=args.scheduler, overwrite=args.overwrite)
-            else:
-                result = controller.run(scene, out=args.out, progress=not args.no_progress, frames=not args.no_frames,
-                                 movie=args.movie, snapshots=not args.no_snapshots, overwrite=args.overwrite,
-                                 checkpoint_every=args.checkpoint_every, restart=args.restart)
+            args = parse_args(argv)
+            runtime.check_stop()
+            return _run(args)
         except schema.ConfigError as exc:
             return _fail(str(exc))
         except runtime.Stopped as exc:
@@ -106,6 +79,37 @@ def main(argv: list[str] | None = None) -> int:
             _exit_now(1)
         except runtime.SimulationError as exc:
             return _fail(str(exc), 1)
+
+
+def _run(args: argparse.Namespace) -> int:
+    """The run the parsed command line asks for; its summary on stdout."""
+    overrides = load.command_overrides(args.set, {k: getattr(args, k) for k in load.FLAGS})
+    if args.quick and "cells" in overrides:
+        raise schema.ConfigError("--quick sets the cells (a quarter per axis): drop it or --set cells")
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", schema.ClampWarning)
+        warnings.simplefilter("always", load.InputWarning)
+        scene = load.load_scene(args.scene, **overrides)
+        if args.quick:
+            scene = load.load_scene(args.scene, **overrides, cells=[max(8, n // 4) for n in scene.grid.cells])
+    load.check_options(scene, out=args.out, executor=args.executor, workers=args.workers,
+                       chunk=args.chunk, threads=args.threads, scheduler=args.scheduler,
+                       checkpoint_every=args.checkpoint_every, restart=args.restart, movie=args.movie,
+                       frames=not args.no_frames)
+    for message in dict.fromkeys(str(w.message) for w in caught):  # each once (--quick loads twice)
+        print(f"ti_dk: warning: {_short(message)}", file=sys.stderr)
+    runtime.check_stop()
+    runtime.init(args.arch, args.threads)
+    runtime.check_stop()
+    _announce(scene)
+    if args.executor == "dask":
+        result = ensemble.run(scene, "dask", out=args.out, progress=not args.no_progress, chunk=args.chunk,
+                              workers=args.workers or 2, threads=args.threads or 1,
+                              scheduler=args.scheduler, overwrite=args.overwrite)
+    else:
+        result = controller.run(scene, out=args.out, progress=not args.no_progress, frames=not args.no_frames,
+                                movie=args.movie, snapshots=not args.no_snapshots, overwrite=args.overwrite,
+                                checkpoint_every=args.checkpoint_every, restart=args.restart)
     print(controller.summary(result))
     return 0
 
@@ -132,6 +136,13 @@ def _exit_now(status: int):
 
 
 def _fail(message: str, status: int = 2) -> int:
-    print(f"ti_dk: error: {message}", file=sys.stderr)
+    print(f"ti_dk: error: {_short(message)}", file=sys.stderr)
     return status
+
+
+def _short(message: str, longest: int = 200) -> str:
+    """``message`` on one line, each word longer than ``longest`` characters (a value of thousands
+    of digits, a path thousands long) cut in its middle."""
+    words = " ".join(message.splitlines()).split(" ")
+    return " ".join(w if len(w) <= longest else f"{w[:longest // 2]}…{w[-20:]}" for w in words)
 

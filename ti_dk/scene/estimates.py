@@ -20,6 +20,9 @@ SPDE_RATE = {1: 1e8, 2: 2e7, 3: 2e7}  # cell-updates per second on 2 CPU cores, 
 PARTICLE_RATE = 3e7  # particle steps per second, likewise
 HYBRID_PARTICLE_RATE = 1.5e7  # the hybrid's particle part (ghost fill, walk, cap, compaction) per particle-step
 REGRID_RATE = 1e7  # grid cells per second a hybrid regrid or on-demand extension handles (host masks, lists)
+# seconds every step costs whatever its size: its kernels' launches, the step loop and its handlers
+# (void1d, 40 cells, one member: 0.6 ms fv, 1.3 ms hybrid, 0.1 ms particle per step; RESULTS.md)
+STEP_OVERHEAD = {"fv": 5e-4, "gaussian": 5e-4, "hybrid": 1e-3, "particle": 1e-4}
 
 
 def _particles(scene: Scene) -> float:
@@ -112,6 +115,7 @@ def work_estimate(scene: Scene) -> tuple[int, float]:
     mc = scene.method.ensemble * cells
     per_step = 0.0
     for method in (scene.method.name, scene.method.compare):
+        per_step += STEP_OVERHEAD.get(method, 0.0)
         if method in ("fv", "gaussian", "hybrid"):
             per_step += mc / SPDE_RATE[scene.grid.dim]
         if method == "particle":

@@ -31,15 +31,19 @@ from .schema import (BOUNDARY_KINDS, CLAMP_WARN, INIT_AXES, INIT_KEYS, KEYS, MAX
 # ---------------------------------------------------------------------------------------
 # loading
 # ---------------------------------------------------------------------------------------
+class InputWarning(UserWarning):
+    """Input that is taken, but not all of it (output times past t_end)."""
+
+
 def available_scenes() -> list[str]:
     return sorted(p.stem for p in SCENE_DIR.glob("*.toml"))
 
 
 def _read_toml(name_or_path: str | Path) -> tuple[str, dict[str, Any]]:
     path = Path(name_or_path)
-    if path.suffix != ".toml" or not path.exists():
+    if path.suffix != ".toml" or not _exists(path):
         path = SCENE_DIR / f"{name_or_path}.toml"
-    if not path.exists():
+    if not _exists(path):
         raise ConfigError(
             f"unknown scene '{name_or_path}': give a .toml path or one of {', '.join(available_scenes())}"
         )
@@ -49,11 +53,21 @@ def _read_toml(name_or_path: str | Path) -> tuple[str, dict[str, Any]]:
         raise ConfigError(f"{path}: not valid TOML ({exc}): fix the file") from None
     except UnicodeDecodeError:
         raise ConfigError(f"{path}: not UTF-8 text: give a TOML scene file") from None
+    except (ValueError, RecursionError) as exc:  # a number of thousands of digits, lists thousands deep
+        raise ConfigError(f"{path}: a value is out of reach ({_beyond(exc)}): fix the file") from None
     except IsADirectoryError:
         raise ConfigError(f"{path} is a directory: give a .toml scene file") from None
     except OSError as exc:
         raise ConfigError(f"{path}: cannot be read ({exc.strerror}): check the path and its permissions") from None
     return path.stem, raw
+
+
+def _exists(path: Path) -> bool:
+    """Whether ``path`` exists; False for a name the file system cannot even look up (too long)."""
+    try:
+        return path.exists()
+    except OSError:
+        return False
 
 
 def _flatten(raw: dict[str, Any]) -> dict[str, Any]:
@@ -70,6 +84,8 @@ def _flatten(raw: dict[str, Any]) -> dict[str, Any]:
             if home != table:
                 raise ConfigError(f"[{table}] {sub}: this key belongs "
                                   + (f"in [{home}]" if home else "at the top of the file, before any table"))
+            if name in flat:  # also at the top of the file: one would silently win
+                raise ConfigError(f"{name} is given twice, at the top of the file and in [{table}]: give it once")
             flat[name] = v
     return flat
 
@@ -94,7 +110,7 @@ def load_scene(name_or_path: str | Path, **overrides: Any) -> Scene:
 def make_scene(flat: dict[str, Any]) -> Scene:
     """Validate a flat dict of scene keys (section keys by flat name plus the initial condition's
     parameters) into a :class:`Scene`."""
-    flat = {k: _plain(v) for k, v in flat.items()}
+    flat = {k: _plain(k, v) for k, v in flat.items()}
     init = _init_keys(flat)
     grid = _grid_keys(flat, init.name)
     kw: dict[str, dict[str, Any]] = {sec: {} for sec in (None, *SECTIONS) if sec not in ("grid", "init")}
@@ -111,11 +127,15 @@ def make_scene(flat: dict[str, Any]) -> Scene:
             kw["method"]["compare"] = flat["compare"]
     kw["stats"].update(_stats_keys(flat, kw["time"].get("t_end", TimeKeys.t_end)))
     scene = Scene(grid=grid, init=init, **kw.pop(None), **{s: SECTIONS[s](**v) for s, v in kw.items() if s})
-    _check_choices(scene)
-    _check_sizes(scene)
-    _check_initial(scene)
-    _check_time_step(scene)
-    check_memory(scene)
+    try:
+        _check_choices(scene)
+        _check_sizes(scene)
+        _check_initial(scene)
+        _check_time_step(scene)
+        check_memory(scene)
+    except OverflowError:  # a length or time step near the float limits, squared
+        raise ConfigError(f"lengths = {list(grid.lengths)}, C = {scene.time.C}: the cell size or time step under- or "
+                          "overflows double precision; give lengths and C nearer 1") from None
     return scene
 
 
@@ -194,7 +214,11 @@ def _stats_keys(flat: dict[str, Any], t_end: float) -> dict[str, Any]:
     outs = tuple(_number("output_times", t, positive=False) for t in (outs if isinstance(outs, list) else [outs]))
     if any(t < 0 for t in outs):
         raise ConfigError(f"output_times {list(outs)}: times must be >= 0")
-    # times past t_end (say after --t-end shortened a run) are dropped; t_end itself is always written
+    # times past t_end (say after --t-end shortened a run) are dropped, with a word; t_end is always written
+    past = sorted({t for t in outs if t > t_end})
+    if past:
+        warnings.warn(f"output_times {', '.join(f'{t:g}' for t in past[:4])}{' …' * (len(past) > 4)} lie past "
+                      f"t_end = {t_end:g}: no row is written for them", InputWarning, stacklevel=4)
     kw["output_times"] = tuple(sorted({t for t in outs if t < t_end} | {t_end}))
     if flat.get("histogram") is not None:
         h = _int_tuple("histogram", flat["histogram"], minimum=None)
@@ -218,10 +242,17 @@ def _check_choices(scene: Scene) -> None:
                           f"use at most about {2 ** (32 - ID_BITS_MIN):.3g} cells")
 
 
-def _plain(value: Any) -> Any:
-    """Python callers' tuples as lists and NumPy scalars as Python numbers, as TOML gives them."""
+MAX_NESTING = 3  # lists in lists: [[lo, hi], ...] per side is the deepest any key takes
+
+
+def _plain(key_: str, value: Any, depth: int = 0) -> Any:
+    """Python callers' tuples as lists and NumPy scalars as Python numbers, as TOML gives them;
+    lists nested deeper than any key takes refused."""
     if isinstance(value, (list, tuple)):
-        return [_plain(v) for v in value]
+        if depth >= MAX_NESTING:
+            raise ConfigError(f"{key_}: lists nested more than {MAX_NESTING} deep; give a number, a list or a list "
+                              "of [lo, hi] pairs")
+        return [_plain(key_, v, depth + 1) for v in value]
     return value.item() if isinstance(value, np.generic) else value
 
 
@@ -261,17 +292,15 @@ def _check_sizes(scene: Scene) -> None:
 
 
 def _check_initial(scene: Scene) -> None:
-    """An initial density given as a formula, a file or by the potential: computable, finite and
-    >= 0 in every cell (the others are by construction)."""
+    """A density from a formula, a file or the potential (the others are so by construction): finite, >= 0."""
     key_ = {"expression": "density", "array": "density_file", "boltzmann": "potential"}.get(scene.init.name)
     if key_ is None:
         return
     try:
         ppc = scene.initial_ppc
-    except (ExprError, initial.InitError) as exc:
-        raise ConfigError(f"{key_}: {exc}") from None
-    except Exception as exc:  # a callable potential's own error
-        raise ConfigError(f"{key_}: evaluating it failed ({type(exc).__name__}: {exc}); fix it") from None
+    except Exception as exc:  # ours say what to change; a callable potential's own error what failed
+        known = isinstance(exc, (ExprError, initial.InitError))
+        raise ConfigError(f"{key_}: " + (str(exc) if known else f"evaluating it failed ({type(exc).__name__}: {exc})")) from None
     if not np.all(np.isfinite(ppc)) or np.any(ppc < 0):
         bad = np.argwhere(~(np.isfinite(ppc) & (ppc >= 0)))[0].tolist()
         raise ConfigError(f"{key_}: the initial density is {ppc[tuple(bad)]} in cell {bad}: "
@@ -294,15 +323,12 @@ def _drift(scene: Scene) -> tuple[float, float]:
     if not (np.all(np.isfinite(coef)) and np.all(np.isfinite(u)) and all(np.all(np.isfinite(g)) for g in grads)):
         raise ConfigError(f"potential = {pot.source!r} is not finite everywhere on the grid (or in a reservoir "
                           "cell): give a potential finite on the closed domain")
-    sd, clamp = math.sqrt(scene.dt / _substeps(scene)), 0.0
+    dt = scene.dt / (scene.hybrid.particle_substeps if scene.method.name == "hybrid" else 1)  # a particle step
+    sd, clamp = math.sqrt(dt), 0.0
     for g, h in zip(grads, grid.dx):
-        mu = 0.5 * float(np.max(np.abs(g))) * scene.dt / _substeps(scene)
+        mu = 0.5 * float(np.max(np.abs(g))) * dt
         clamp = max(clamp, 0.5 * (math.erfc((h - mu) / (sd * math.sqrt(2))) + math.erfc((h + mu) / (sd * math.sqrt(2)))))
     return stability_number(grid, scene.dt, coef), clamp
-
-
-def _substeps(scene: Scene) -> int:
-    return scene.hybrid.particle_substeps if scene.method.name == "hybrid" else 1
 
 
 def _check_time_step(scene: Scene) -> None:
@@ -335,13 +361,16 @@ def _check_time_step(scene: Scene) -> None:
 def check_options(scene: Scene, *, out: str | Path | None = None, executor: str = "local",
                   workers: int | None = None, chunk: int | None = None, threads: int | None = None,
                   scheduler: str | None = None, checkpoint_every: int = 0, restart: str | Path | None = None,
-                  movie: bool = False) -> None:
-    """Check the options of a run (the command line's, or :func:`ti_dk.run`'s) before anything starts."""
+                  movie: bool = False, frames: bool | None = None) -> None:
+    """Check the options of a run (the command line's, or :func:`ti_dk.run`'s) before anything starts;
+    options that would silently undo each other are refused too."""
     def whole(name: str, value: Any, lo: int, hi: int | None = None) -> None:
         if value is None:
             return
         Key("int", "", lo=lo, hi=hi).check(name, value)
 
+    if movie and frames is False:
+        raise ConfigError("--movie is made of frames: drop --no-frames or --movie")
     whole("--threads", threads, 1, 4096)
     whole("--checkpoint-every", checkpoint_every, 0, MAX_STEPS)
     whole("--workers", workers, 1, 4 * (os.cpu_count() or 1) if scheduler is None else 100_000)
@@ -355,15 +384,34 @@ def check_options(scene: Scene, *, out: str | Path | None = None, executor: str 
         for flag, given in (("--workers", workers), ("--chunk", chunk), ("--scheduler", scheduler)):
             if given is not None:
                 raise ConfigError(f"{flag} is for --executor dask: drop it or add --executor dask")
-    if restart is not None and not Path(restart).is_file():
+    for flag, path, check in (("--restart", restart, lambda p: _check_restart(p, scene)), ("--out", out, _check_out)):
+        try:
+            if path is not None:
+                check(path)
+        except OSError as exc:  # a name longer than the file system takes, a loop of links
+            raise ConfigError(f"{flag}: {exc.strerror}; give a shorter, plain path") from None
+
+
+def _check_restart(restart: str | Path, scene: Scene) -> None:
+    """A checkpoint of this ti_dk's format, whole, for these settings (the full check of its content
+    against the solvers comes when it is loaded)."""
+    from ..control.checkpoint import check_checkpoint_file
+
+    if not Path(restart).is_file():
         raise ConfigError(f"--restart {restart}: no such checkpoint file")
-    if out is not None:
-        p = Path(out)
-        parent = next((q for q in (p, *p.parents) if q.exists()), None)
-        if parent is not None and not parent.is_dir():
-            raise ConfigError(f"--out {out}: {parent} is a file: give a directory")
-        if parent is not None and not os.access(parent, os.W_OK | os.X_OK):
-            raise ConfigError(f"--out {out}: {parent} is not writable here; give a directory you can write")
+    check_checkpoint_file(Path(restart), scene)
+
+
+def _check_out(out: str | Path) -> None:
+    """An output directory that exists or can be made, and can be written."""
+    if str(out) == "":
+        raise ConfigError("--out '': give a directory (. for the current one)")
+    p = Path(out)
+    parent = next((q for q in (p, *p.parents) if q.exists()), None)
+    if parent is not None and not parent.is_dir():
+        raise ConfigError(f"--out {out}: {parent} is a file: give a directory")
+    if parent is not None and not os.access(parent, os.W_OK | os.X_OK):
+        raise ConfigError(f"--out {out}: {parent} is not writable here; give a directory you can write")
 
 
 # ---------------------------------------------------------------------------------------
@@ -417,3 +465,35 @@ def parse_value(text: str, key_: str | None = None) -> Any:
         return tomllib.loads(f"v = {text}")["v"]
     except tomllib.TOMLDecodeError:
         return text
+    except (ValueError, RecursionError) as exc:  # thousands of digits, lists thousands deep
+        raise ConfigError(f"--set {key_}: the value is out of reach ({_beyond(exc)}); give a plain number, "
+                          "text or list") from None
+
+
+def _beyond(exc: Exception) -> str:
+    """What a parser's ValueError or RecursionError says, in a few words."""
+    return "nested too deep" if isinstance(exc, RecursionError) else str(exc).split(":")[0].split(";")[0]
+
+
+FLAGS = {"method": "--method", "ensemble": "--ensemble", "seed": "--seed", "t_end": "--t-end"}  # keys with a flag
+
+
+def command_overrides(sets: list[str], flags: dict[str, Any]) -> dict[str, Any]:
+    """The scene keys a command line sets: each ``--set KEY=VALUE`` and each flag of :data:`FLAGS`
+    given (not None); a key given twice, by two ``--set`` or by ``--set`` and its flag, is refused."""
+    overrides: dict[str, Any] = {}
+    for item in sets:
+        key, sep, value = item.partition("=")
+        key = key.strip()
+        if not sep or not key:
+            raise ConfigError(f"--set {item[:60]!r}: write KEY=VALUE, e.g. --set C=0.05")
+        if key in overrides:
+            raise ConfigError(f"--set {key} is given twice: give each key once")
+        overrides[key] = parse_value(value.strip(), key)
+    for key, value in flags.items():
+        if value is None:
+            continue
+        if key in overrides:
+            raise ConfigError(f"{key} is given twice, as {FLAGS[key]} {value} and as --set {key}=...: give it once")
+        overrides[key] = value
+    return overrides

@@ -1,0 +1,218 @@
+"""Where a run writes and how it takes its output: every path inside ``--out``, an exclusive lock,
+and a result replaced only once the new one is whole.
+
+A run never writes through a link, never replaces a file it did not write, and never writes over
+a finished result: with one in place (``--overwrite``), its run file, frames, snapshots and movie
+are written into a staging folder beside them (``.<stem>.partial``) and moved into place
+(``rename``, which replaces a name and never follows it) only when the run has finished. A failed
+or stopped replace thus leaves the old result, frames and snapshots as they were. With no finished
+result in place, a run writes in place, so that a killed one leaves its incomplete file where it
+is looked for.
+"""
+from __future__ import annotations
+
+import fcntl
+import os
+import shutil
+import sys
+import tempfile
+from contextlib import contextmanager
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import h5py
+
+from ..scene.schema import ConfigError
+from .files import is_complete, output_error
+
+
+@dataclass(frozen=True)
+class Outputs:
+    """Every path a run writes, named once and all inside ``out``.
+
+    ``run_file`` ``<out>/<name>_<method>.h5``, ``frames`` ``…_frames/``, ``snapshots``
+    ``…_openpmd/``, ``movie`` ``….mp4`` (together: the result, :attr:`RESULT`), ``checkpoint``
+    ``…_checkpoint.h5``, ``chunks`` ``…_chunks/`` (Dask), ``lock`` ``….lock`` (held while a run
+    writes any of them) and ``stage`` ``.….partial/``, where the result is written before it takes
+    its place (:meth:`staged`) when the run replaces a finished result (``staging``).
+    """
+
+    out: Path
+    stem: str
+    staging: bool = False  # the result is written in ``stage`` (a finished one is in place)
+
+    @classmethod
+    def of(cls, out: str | Path, scene) -> "Outputs":
+        if str(out) == "":
+            raise ConfigError("--out '': give a directory (. for the current one)")
+        return cls(Path(out), f"{scene.name}_{scene.method.name}")  # the name is a plain file name (load.py)
+
+    run_file = property(lambda self: self.out / f"{self.stem}.h5")
+    frames = property(lambda self: self.out / f"{self.stem}_frames")
+    snapshots = property(lambda self: self.out / f"{self.stem}_openpmd")
+    checkpoint = property(lambda self: self.out / f"{self.stem}_checkpoint.h5")
+    chunks = property(lambda self: self.out / f"{self.stem}_chunks")
+    lock = property(lambda self: self.out / f"{self.stem}.lock")
+    movie = property(lambda self: self.out / f"{self.stem}.mp4")
+    structure_factor = property(lambda self: self.frames / "structure_factor.png")  # S(k) drawn, beside the frames
+    stage = property(lambda self: self.out / f".{self.stem}.partial")
+
+    @property
+    def result(self) -> tuple[Path, ...]:
+        """What a run's result consists of, in the order it takes its place (the run file, which says
+        whether the result is complete, last)."""
+        return self.frames, self.snapshots, self.movie, self.run_file
+
+    def staged(self, path: Path) -> Path:
+        """Where the result's part ``path`` is written until the run ends."""
+        return self.stage / path.name if self.staging else path
+
+    def chunk(self, member0: int) -> Path:
+        """The file of the finished chunk whose first member is ``member0`` (Dask)."""
+        return self.chunks / f"chunk_{member0:09d}.h5"
+
+    def chunk_files(self) -> list[Path]:
+        """The finished chunks' files, in member order."""
+        return sorted(self.chunks.glob("chunk_*.h5"))
+
+    @contextmanager
+    def claim(self, overwrite: bool = False, fresh: bool = True):
+        """Hold the exclusive lock for the whole run; refuse a busy output, a complete result (without
+        ``overwrite``) and anything at the output's paths that is not ti_dk's; yield the outputs to
+        write, staged (:meth:`staged`) when a complete result is in place.
+
+        A ``fresh`` run (not a restart) starts from an empty stage, or in place after removing the
+        parts of an unfinished result; a restart continues the stage its run left, or the files in
+        place. On the way out the stage takes the result's place after a finished run; after a
+        failed or stopped one the old result stays whole and the stage stays for ``--restart``
+        (if there is a checkpoint). The lock file is removed at the end.
+        """
+        fd = self._take_lock()
+        finished, claimed = False, self
+        try:
+            self._refuse_foreign()
+            complete = is_complete(self.run_file)
+            if complete and not overwrite:
+                raise ConfigError(f"{self.run_file} holds a complete result: add --overwrite to replace it, "
+                                  "or give another --out")
+            claimed = replace(self, staging=complete)
+            claimed._prepare(fresh)
+            yield claimed
+            finished = True
+        except OSError as exc:
+            raise output_error(self.out, exc) from None
+        finally:
+            try:
+                claimed._settle(finished)
+            finally:
+                self._drop_lock(fd)
+
+    def _take_lock(self) -> int:
+        """Lock ``lock`` (created if absent, never through a link); say so when an earlier run left it."""
+        if self.lock.is_symlink():
+            raise ConfigError(f"{self.lock} is a symbolic link: ti_dk never writes through links; remove it or "
+                              "give another --out")
+        try:
+            self.out.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise output_error(self.out, exc) from None
+        while True:
+            try:
+                fd = os.open(self.lock, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW | os.O_CLOEXEC, 0o644)
+            except OSError as exc:
+                raise output_error(self.lock, exc) from None
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                pid = os.pread(fd, 32, 0).decode(errors="replace").strip() or "?"
+                os.close(fd)
+                raise ConfigError(f"{self.run_file} is being written by another run (pid {pid}): wait for it to "
+                                  "finish or give another --out") from None
+            try:
+                if os.stat(self.lock).st_ino == os.fstat(fd).st_ino:
+                    break
+            except FileNotFoundError:
+                pass
+            os.close(fd)  # its holder removed it between our open and our lock: take the new one
+        try:
+            left = os.pread(fd, 32, 0).decode(errors="replace").strip()
+            if left:
+                print(f"ti_dk: note: {self.lock} was left by run pid {left}, which ended without removing it "
+                      "(a stale lock, no run holds it): taking it over", file=sys.stderr)
+            os.ftruncate(fd, 0)
+            os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+        except OSError as exc:  # the disk is full
+            self._drop_lock(fd)
+            raise output_error(self.lock, exc) from None
+        return fd
+
+    def _drop_lock(self, fd: int) -> None:
+        """Remove the lock file while holding it, then release it (a run that opened the old file
+        before the removal sees that it is gone and takes a new one)."""
+        try:
+            os.unlink(self.lock)
+        except OSError:
+            pass
+        os.close(fd)
+
+    def _refuse_foreign(self) -> None:
+        """Refuse links and files that ti_dk did not write at the output's paths."""
+        for p in (*self.result, self.checkpoint, self.chunks, self.stage):
+            if p.is_symlink():
+                raise ConfigError(f"{p} is a symbolic link: ti_dk never writes through links; remove it or give "
+                                  "another --out")
+        for p, folder in ((self.frames, True), (self.snapshots, True), (self.chunks, True), (self.stage, True),
+                          (self.movie, False), (self.checkpoint, False), (self.run_file, False)):
+            if p.exists() and p.is_dir() != folder:
+                raise ConfigError(f"{p} is a {'file' if folder else 'folder'} that ti_dk did not write: move it "
+                                  "away or give another --out")
+        if self.run_file.exists() and not is_run_file(self.run_file):
+            raise ConfigError(f"{self.run_file} is not a ti_dk run file: move it away or give another --out")
+
+    def _prepare(self, fresh: bool) -> None:
+        """For a fresh run, no stage left by an earlier one and, in place, no part of an unfinished
+        result (a series never mixes two runs); for a staged one, its stage (a restart's kept one)."""
+        if fresh and self.stage.exists():
+            shutil.rmtree(self.stage)
+        if self.staging:
+            self.stage.mkdir(exist_ok=True)
+        elif fresh:
+            for part in self.result:
+                if part.is_dir():
+                    shutil.rmtree(part)
+                else:
+                    part.unlink(missing_ok=True)
+
+    def _settle(self, finished: bool) -> None:
+        """The stage takes the result's place, or stays (see :meth:`claim`)."""
+        if not self.staging or not self.stage.is_dir():
+            return
+        try:
+            if finished:
+                self._swap()
+            elif not self.checkpoint.exists() or not self.staged(self.run_file).exists():
+                shutil.rmtree(self.stage, ignore_errors=True)
+        except OSError as exc:
+            raise output_error(self.out, exc) from None
+
+    def _swap(self) -> None:
+        """Move the old result aside, the staged one into place (each a rename), then drop the old."""
+        old = Path(tempfile.mkdtemp(prefix=f".{self.stem}.old.", dir=self.out))
+        try:
+            for final in self.result:
+                if os.path.lexists(final):
+                    os.rename(final, old / final.name)
+                if os.path.lexists(self.staged(final)):
+                    os.rename(self.staged(final), final)
+        finally:
+            shutil.rmtree(old, ignore_errors=True)
+        shutil.rmtree(self.stage, ignore_errors=True)
+
+
+def is_run_file(path: Path) -> bool:
+    """Whether ``path`` is an HDF5 file that ti_dk wrote as a run file (complete or not)."""
+    try:
+        with h5py.File(path, "r", locking=False) as f:
+            return "scene" in f.attrs and "versions" in f.attrs and "complete" in f.attrs
+    except (OSError, ValueError):
+        return False
