@@ -93,3 +93,22 @@ def test_walked_fill_keeps_exactly_the_ghosts_that_walk_into_the_region(layout):
         assert got == expect
         assert (pid1[:, 0] >> bits).size == enters.sum()
     assert clamped == total_clamped and total_clamped > 0  # C = 0.5: p = 0.16 per axis
+
+
+def test_ghosts_lie_as_the_boltzmann_factor_within_their_cell():
+    """With a potential the ghosts' in-cell profile is e^{-βu}, β the centred slope of ln q̄: for
+    U = g x at equilibrium that is gΔx, so the mean offset in the cell is 1/β − 1/(e^β − 1)
+    (0.418 for β = 1, where uniform placement gives 0.5)."""
+    scene = load_scene("trap1d", method="hybrid", potential="20*x", cells=[20], ppc=10, ensemble=2000,
+                       regrid_interval=0)
+    s = make_solver(scene, scene.initial_ppc)
+    step = 4
+    s.sampler.fill(s.pool, s.cur, step, s.n_ring, 0.0, 1, 0)
+    x, pid, n = s.pool.occupied(s.cur)
+    u = np.concatenate([x[e, :n[e], 0][pid[e, :n[e], 1] == step + 1] for e in range(2000)]) * 20
+    u -= np.floor(u)
+    beta = 1.0
+    mean = 1 / beta - 1 / np.expm1(beta)
+    second = 2 / beta**2 - (1 + 2 / beta) / np.expm1(beta)  # E[u²] of the truncated exponential
+    se = np.sqrt((second - mean**2) / u.size)
+    assert u.size > 5000 and abs(u.mean() - mean) < 4 * se, (u.mean(), mean, se)

@@ -10,7 +10,7 @@ from ti_dk.methods.fv import SPDESolver
 from ti_dk.core.rng import seed_key
 from ti_dk.core.grid import PERIODIC, Grid
 
-from ..helpers import digest_on_threads
+from ..helpers import digest_on_threads, fv_mean_step
 
 
 def _grid(cells, lengths=None, boundary="periodic", reservoir_ppc=0.0):
@@ -154,24 +154,6 @@ def test_fused_1d_step_equals_the_three_kernel_step(boundary):
         assert da["boundary_inflow"] == pytest.approx(db["boundary_inflow"], rel=1e-12, abs=1e-12)
 
 
-def _heat_step(q, dx, dt, boundary, reservoir):
-    """One step of eq. (10) in NumPy, face by face: F = ½ Δq̄/Δx across each face (the reservoir
-    value beyond a Dirichlet side, the opposite cell across a periodic one, none through Neumann)."""
-    out = q.copy()
-    for a, (h, (lo, hi), (r_lo, r_hi)) in enumerate(zip(dx, boundary, reservoir)):
-        qm = np.moveaxis(q, a, 0)
-        n = qm.shape[0]
-        left = np.concatenate([qm[-1:] if lo == "periodic" else np.full((1, *qm.shape[1:]), r_lo), qm])
-        right = np.concatenate([qm, qm[:1] if hi == "periodic" else np.full((1, *qm.shape[1:]), r_hi)])
-        F = 0.5 / h * (right - left)  # faces 0 … n
-        if lo == "neumann":
-            F[0] = 0.0
-        if hi == "neumann":
-            F[n] = 0.0
-        out += np.moveaxis(dt * (F[1:] - F[:-1]) / h, 0, a)
-    return out
-
-
 @pytest.mark.parametrize("cells, boundary", [
     ((30,), [["dirichlet", "neumann"]]),
     ((9, 8), [["neumann", "dirichlet"], ["periodic", "periodic"]]),
@@ -190,7 +172,7 @@ def test_mean_density_follows_the_discrete_heat_equation(cells, boundary):
     for n in range(6):
         s.fluxes(n)
         s.update()
-        q = _heat_step(q, grid.dx, dt, [tuple(b) for b in boundary], grid.reservoir)
+        q = fv_mean_step(q, grid.dx, dt, [tuple(b) for b in boundary], grid.reservoir)
     np.testing.assert_allclose(s.qbar.to_numpy()[0], q, rtol=1e-12, atol=0)
 
 

@@ -1,5 +1,7 @@
 """Particles against exact answers: Binomial counts at equilibrium, Poisson-binomial counts for the
 void, exact particle balance with Dirichlet reservoirs."""
+import math
+
 import numpy as np
 import pytest
 import taichi as ti
@@ -113,3 +115,64 @@ def test_same_seed_same_bits_on_one_and_two_threads():
     """Counter-based walks: the particles after 30 steps are bit-identical whatever the thread count."""
     one, two = digest_on_threads(_BITS)
     assert one == two
+
+
+def _ou_cell_probabilities(n: int, start: int, t: float, sigma: float = 0.08) -> np.ndarray:
+    """Chance that a particle started uniformly in cell ``start`` of [0, 1] lies in each cell at time
+    ``t`` under the Ornstein–Uhlenbeck law of U = ½((x − ½)/σ)² (dX = −½U'dt + dW): Gaussian with
+    mean ½ + (x₀ − ½)e^{−t/2σ²} and variance σ²(1 − e^{−t/σ²}), averaged over x₀ (Gauss–Legendre)."""
+    ndtr = np.vectorize(lambda z: 0.5 * math.erfc(-z / math.sqrt(2)))  # the standard normal CDF
+    nodes, weights = np.polynomial.legendre.leggauss(32)
+    x0 = (start + 0.5 + 0.5 * nodes) / n
+    mean = 0.5 + (x0 - 0.5) * math.exp(-t / (2 * sigma**2))
+    sd = sigma * math.sqrt(-math.expm1(-t / sigma**2))
+    edges = np.linspace(0, 1, n + 1)
+    cdf = ndtr((edges[:, None] - mean[None, :]) / sd)
+    return (np.diff(cdf, axis=0) * 0.5 * weights).sum(axis=1)
+
+
+def test_the_drift_follows_the_ornstein_uhlenbeck_propagator(tmp_path):
+    """400 particles per member from one cell of the harmonic trap, short enough (2,000 members,
+    t ≈ 0.01: the cloud stays 5 standard deviations from the walls) that the walls do not matter:
+    the counts are Bin(400, p_i) with p_i the OU propagator integrated over cell i."""
+    n, start, N, M = 40, 11, 400, 2000
+    ppc = np.zeros(n)
+    ppc[start] = N
+    np.save(tmp_path / "start.npy", ppc)
+    scene = load_scene("trap1d", method="particle", init="array", density_file=str(tmp_path / "start.npy"),
+                       ensemble=M, t_end=0.01, t_equil=None, output_times=[0.01])
+    res = run(scene)
+    p = _ou_cell_probabilities(n, start, scene.n_steps * scene.dt)
+    assert abs(p.sum() - 1) < 1e-7 and res.diagnostics["mass"][-1] == N * M  # < 1e-7 of the Gaussian beyond the walls
+    counts = as_counts(res.stats, -1, res.cell_volume)
+    cells = N * p > 1
+    exact = {k: np.zeros(n) for k in KEYS}
+    ses = {k: np.ones(n) for k in KEYS}
+    for i in np.flatnonzero(cells):
+        b = theory.binomial_moments(N, p[i])
+        s = theory.sampling_se(theory.poisson_binomial_pmf(np.array([p[i]]), np.array([N])), M)
+        for k in KEYS:
+            exact[k][i], ses[k][i] = b[k], s[k]
+    z = (counts["mean"] - N * p)[cells] / ses["mean"][cells]
+    assert np.all(np.abs(z) < 4), z
+    check_moments(counts, exact, ses, cells)
+
+
+def test_a_callable_potential_is_tabulated_for_the_walk(tmp_path):
+    """The same trap as a Python callable (its gradient tabulated for the walk) moves the cloud
+    as the formula does: the mean position after t agrees with the OU mean within 4 standard errors."""
+    n, start, N, M = 40, 11, 400, 400
+    ppc = np.zeros(n)
+    ppc[start] = N
+    np.save(tmp_path / "start.npy", ppc)
+    scene = load_scene("trap1d", method="particle", init="array", density_file=str(tmp_path / "start.npy"),
+                       ensemble=M, t_end=0.01, t_equil=None, output_times=[0.01],
+                       potential=lambda x: 0.5 * ((x - 0.5) / 0.08) ** 2)
+    assert scene.to_dict()["grid"]["potential"] == "callable test_a_callable_potential_is_tabulated_for_the_walk.<locals>.<lambda>"
+    res = run(scene)
+    p = _ou_cell_probabilities(n, start, scene.n_steps * scene.dt)
+    x = (np.arange(n) + 0.5) / n
+    mean_x = (res.stats.mean[-1] * res.cell_volume * x).sum() / N
+    exact_x = (p * x).sum()
+    sd = math.sqrt((p * (x - exact_x) ** 2).sum() / (N * M))
+    assert abs(mean_x - exact_x) < 4 * sd

@@ -4,8 +4,10 @@ import math
 import numpy as np
 import pytest
 
-from ti_dk import load_scene
+from ti_dk import ConfigError, load_scene
 from ti_dk.scene import initial
+from ti_dk.scene.expr import Potential
+from ti_dk.scene.load import make_scene
 
 
 def test_uniform_holds_the_stated_number_everywhere():
@@ -66,7 +68,57 @@ def test_spheres_volumes_and_offset():
 
 
 @pytest.mark.parametrize("name", list(initial.REGISTRY))
-def test_every_condition_is_a_nonnegative_float_array_of_the_grid(name):
+def test_every_condition_is_a_nonnegative_float_array_of_the_grid(name, tmp_path):
     cells = {"ellipses": (6, 5), "spheres": (4, 5, 6)}.get(name, (6, 5))
-    q = initial.density_ppc(name, {}, cells, (1.0,) * len(cells))
+    np.save(tmp_path / "q.npy", np.arange(30.0).reshape(6, 5))
+    params = {"expression": {"density": "1 + x*y"}, "array": {"density_file": str(tmp_path / "q.npy")}}.get(name, {})
+    q = initial.density_ppc(name, params, cells, (1.0,) * len(cells), Potential.of("(x - 0.5)**2 + y", 2))
     assert q.shape == cells and q.dtype == np.float64 and np.all(q >= 0)
+
+
+def test_a_density_formula_is_taken_at_the_cell_centres():
+    s = make_scene(dict(init="expression", density="3 + 2*sin(2*pi*x)", cells=[8]))
+    x = (np.arange(8) + 0.5) / 8
+    assert np.allclose(s.initial_ppc, 3 + 2 * np.sin(2 * np.pi * x), rtol=1e-15)
+    s = make_scene(dict(init="expression", density="x + 10*y", cells=[4, 2], lengths=[2.0, 1.0]))
+    assert np.allclose(s.initial_ppc, np.add.outer((np.arange(4) + 0.5) / 2, 10 * (np.arange(2) + 0.5) / 2),
+                       rtol=1e-15)
+    for bad, msg in [("1 - 2*x", r"density: the initial density is -0.125 in cell \[4\]"),
+                     ("y", "uses y but the grid is 1D"), ("exp(1000*x)", "give finite densities"),
+                     ("import os", "not a formula")]:
+        with pytest.raises(ConfigError, match=msg):
+            make_scene(dict(init="expression", density=bad, cells=[8]))
+
+
+def test_a_density_array_from_npy_and_hdf5(tmp_path):
+    import h5py
+
+    q = np.random.default_rng(1).uniform(0, 9, size=(6, 4))
+    np.save(tmp_path / "q.npy", q)
+    with h5py.File(tmp_path / "q.h5", "w") as f:
+        f["group/q"] = q
+    for path in (tmp_path / "q.npy", f"{tmp_path / 'q.h5'}:/group/q"):
+        s = make_scene(dict(init="array", density_file=str(path), cells=[6, 4]))
+        assert np.array_equal(s.initial_ppc, q)
+    with pytest.raises(ConfigError, match=r"density_file: .* shape \[6, 4\]: give one of shape \[4, 6\]"):
+        make_scene(dict(init="array", density_file=str(tmp_path / "q.npy"), cells=[4, 6]))
+    for bad in (tmp_path / "none.npy", f"{tmp_path / 'q.h5'}:/nothing"):
+        with pytest.raises(ConfigError, match="density_file: cannot read"):
+            make_scene(dict(init="array", density_file=str(bad), cells=[6, 4]))
+
+
+def test_boltzmann_is_the_cell_averaged_equilibrium():
+    s = load_scene("trap1d")
+    n, sigma = s.grid.cells[0], 0.08
+    z = (np.linspace(0, 1, n + 1) - 0.5) / (sigma * math.sqrt(2))
+    mass = np.array([0.5 * (math.erfc(a) - math.erfc(b)) if a >= 0 else 0.5 * (math.erfc(-b) - math.erfc(-a))
+                     for a, b in zip(z[:-1], z[1:])])
+    assert np.allclose(s.initial_ppc, 10 * n * mass / mass.sum(), rtol=1e-12, atol=0)
+    with pytest.raises(ConfigError, match="needs a potential"):
+        load_scene("trap1d", potential="")
+
+
+def test_a_shape_for_another_dimension_says_which_fit():
+    with pytest.raises(ConfigError, match="'ellipses' is 2D, give 2 cell counts .in 1D use one of uniform, void, "
+                                          "expression, array, boltzmann."):
+        load_scene("ellipse2d", cells=[16])

@@ -183,3 +183,15 @@ def test_sections_mirror_the_tables_and_flat_keys_still_work(tmp_path):
     (tmp_path / "wrong.toml").write_text('[grid]\ncells = [20]\nC = 0.1\n[init]\nname = "uniform"\n')
     with pytest.raises(ConfigError, match=r"\[grid\] C: this key belongs in \[time\]"):
         load_scene(tmp_path / "wrong.toml")
+
+
+def test_a_potential_is_checked_before_anything_runs():
+    from ti_dk.scene.load import parse_value
+
+    assert load_scene("trap1d", potential=parse_value("0.5*((x-0.5)/0.08)**2", "potential")).potential.dim == 1
+    assert load_scene("trap1d", potential=parse_value("3", "potential"), init="uniform").grid.potential == "3"
+    for bad, msg in [("y**2", "potential = 'y\\*\\*2': 'y\\*\\*2' uses y but the grid is 1D: use x"),
+                     ("__import__('os')", "is not allowed"), ("x +", "not a formula"), (["x"], "give a formula"),
+                     ("exp(1e5*x)", "not finite everywhere")]:
+        with pytest.raises(ConfigError, match=msg):
+            load_scene("trap1d", potential=bad, init="uniform")

@@ -35,13 +35,15 @@ class Grid(Geometry):
     """A uniform Cartesian grid on ``[0, L_0] × … × [0, L_{d-1}]`` (paper §2.2.1).
 
     ``boundary[a] = (lo, hi)`` holds the boundary kind of each side of axis ``a``;
-    ``reservoir[a]`` the Dirichlet reservoir number density of each side (particles per volume).
+    ``reservoir[a]`` the Dirichlet reservoir number density of each side (particles per volume);
+    ``potential`` the external potential U (a :class:`ti_dk.scene.expr.Potential`, or None).
     """
 
     cells: tuple[int, ...]
     lengths: tuple[float, ...]
     boundary: tuple[tuple[int, int], ...]
     reservoir: tuple[tuple[float, float], ...]
+    potential: object = None  # U in units of k_B T; None compiles no drift anywhere
 
     @classmethod
     def from_scene(cls, scene) -> "Grid":
@@ -51,6 +53,7 @@ class Grid(Geometry):
             lengths=scene.grid.lengths,
             boundary=tuple((_KIND[lo], _KIND[hi]) for lo, hi in scene.grid.boundary),
             reservoir=tuple((lo / vol, hi / vol) for lo, hi in scene.grid.reservoir_ppc),
+            potential=scene.potential,
         )
 
     @property

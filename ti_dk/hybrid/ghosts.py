@@ -101,6 +101,11 @@ class Sampler:
         - ``mean`` (default): ``p = q̄``, the deterministic scheme (eq. 10) advanced alongside, the
           same for every member: the profile of the ensemble mean, with no feedback from any
           member's fluctuation. The count still comes from the member's own ``q``.
+
+        With an external potential the profile is exponential (:meth:`Walker.in_cell`), its rate
+        the centred slope of ``ln p``, ``β_a = (ln p_{C−e_a} − ln p_{C+e_a}) / 2`` clipped to
+        [−50, 50]: at equilibrium ``p ∝ e^{−Ū}`` and β is the potential's rise across the cell, so
+        the ghosts lie as e^{−U} does within the cell (exactly, for U linear there).
         """
         b = ti.Vector.zero(self.real, self.dim)
         if ti.static(self.profile != "uniform"):
@@ -114,7 +119,11 @@ class Sampler:
                         q[side] = self._profile(K)
                     elif ti.static(self.grid.boundary[a][side] == DIRICHLET):
                         q[side] = self.real(self.grid.reservoir[a][side])
-                if qc > 0:
+                if ti.static(self.walker.drifting):
+                    tiny = ti.static(1e-300 if self.real == ti.f64 else 1e-30)
+                    lo, hi = ti.log(ti.max(q[0], self.real(tiny))), ti.log(ti.max(q[1], self.real(tiny)))
+                    b[a] = ti.math.clamp(self.real(0.5) * (lo - hi), self.real(-50.0), self.real(50.0))
+                elif qc > 0:
                     b[a] = ti.math.clamp((q[1] - q[0]) / (self.real(2.0) * qc), self.real(-2.0), self.real(2.0))
         return b
 

@@ -1,6 +1,8 @@
 """The face fluxes and the update of the finite-volume Dean–Kawasaki scheme and its Gaussian
-version (paper eq. 8–11), as kernels of :class:`~.fv.SPDESolver`."""
+version (paper eq. 8–11), as kernels of :class:`~.fv.SPDESolver`, and the drift of an external
+potential (Scharfetter–Gummel coefficients, :func:`drift_coefficients`)."""
 
+import numpy as np
 import taichi as ti
 
 from ..core import rng
@@ -83,7 +85,7 @@ class Fluxes:
                 root_sum = r[0] + r[1]
             else:
                 root_sum = ti.sqrt(ti.max(qq[0], self.real(0.0))) + ti.sqrt(ti.max(qq[1], self.real(0.0)))
-            F = self._flux(J[a + 1], a, qq[0], qq[1], root_sum, bits)
+            F = self._flux(J0, a, qq[0], qq[1], root_sum, bits)
         return F
 
     @ti.func
@@ -94,14 +96,30 @@ class Fluxes:
         v = self.real(0.0)
         if face_kind(self.grid, F[a + 1], a) != NEUMANN:
             s = self._pair(self.qbar, F, a, self.grid.reservoir)
-            v = self.real(0.5 / self.grid.dx[a]) * (s[1] - s[0])
+            v = self._gradient(F, a, s[0], s[1])
         return v
 
     @ti.func
-    def _flux(self, i, a: ti.template(), q_left, q_right, root_sum, bits):
-        """Eq. (8) through face ``i`` along axis ``a`` from the densities on its two sides and the
-        sum of their amplitudes' square roots; a Dirichlet face adds what it carries to :attr:`inflow`."""
-        F = self.real(0.5 / self.grid.dx[a]) * (q_right - q_left) \
+    def _gradient(self, F0, a: ti.template(), q_left, q_right):
+        r"""The deterministic part of the flux through face ``F0`` (member index 0) along axis ``a``:
+        ``½ (q_R − q_L)/Δx_a`` (eq. 8), or with a potential the Scharfetter–Gummel form
+        ``½ (c_R q_R − c_L q_L)/Δx_a`` of :func:`drift_coefficients`, which vanishes on
+        ``q ∝ e^{−Ū}`` (compiled in only with a potential: without one, the bits of eq. 8)."""
+        v = self.real(0.0)
+        if ti.static(self.drifting):
+            c = self.coef[F0]
+            v = self.real(0.5 / self.grid.dx[a]) * (c[2 * a + 1] * q_right - c[2 * a] * q_left)
+        else:
+            v = self.real(0.5 / self.grid.dx[a]) * (q_right - q_left)
+        return v
+
+    @ti.func
+    def _flux(self, F0, a: ti.template(), q_left, q_right, root_sum, bits):
+        """Eq. (8) through face ``F0`` (member index 0; ``i`` along axis ``a``) from the densities on
+        its two sides and the sum of their amplitudes' square roots (:meth:`_gradient`: with the
+        drift); a Dirichlet face adds what it carries to :attr:`inflow`."""
+        i = F0[a + 1]
+        F = self._gradient(F0, a, q_left, q_right) \
             + self.real(0.5 * self.noise_scale) * root_sum * rng.normal(bits, self.real)
         if ti.static(DIRICHLET in self.grid.boundary[a]):
             area = ti.static(self.grid.face_area[a] * self.dt)
@@ -199,3 +217,60 @@ class Fluxes:
             if ti.static(self.track_mean):
                 if J[0] == 0:  # q̄ has one member
                     self.qbar[J] += self.real(self.dt) * self.dqbar[J]
+
+
+# ---------------------------------------------------------------------------------------
+# the drift of an external potential (NumPy, once per run)
+# ---------------------------------------------------------------------------------------
+def bernoulli(z: np.ndarray) -> np.ndarray:
+    """B(z) = z / (e^z − 1), B(0) = 1 (the Scharfetter–Gummel weight)."""
+    z = np.asarray(z, dtype=np.float64)
+    with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+        return np.where(z == 0, 1.0, z / np.where(z == 0, 1.0, np.expm1(z)))
+
+
+def drift_coefficients(grid) -> np.ndarray:
+    r"""``(*faces, 2 dim)``: the Scharfetter–Gummel weights ``c_L = B(δ)``, ``c_R = B(−δ) = B(δ) + δ``,
+    ``δ = Ū_R − Ū_L``, of each face (the lower face of each cell along axis ``a`` in entries
+    ``2a, 2a + 1``; the padded last layer holds the upper boundary faces), so that the deterministic
+    flux ``½ (c_R q_R − c_L q_L)/Δx_a = ½ e^{−U_f} Δ(q e^{Ū})/Δx_a`` with ``e^{−U_f}`` the
+    reciprocal logarithmic mean of ``e^{Ū}`` on the two sides: exact for a potential linear across
+    the face, and zero on ``q ∝ e^{−Ū}`` at any Péclet number. ``Ū`` is
+    :meth:`~ti_dk.scene.expr.Potential.cell_values` (cell averages of e^{−U}, so the discrete
+    equilibrium is the cell-averaged Boltzmann profile); a reservoir cell beyond a Dirichlet side
+    has its own Ū; periodic sides wrap. Weights of faces that carry no flux (Neumann, the padded
+    layer of other axes) are 1."""
+    n, dim = grid.cells, grid.dim
+    ub = grid.potential.cell_values(n, grid.lengths, pad=1)
+    for a, (lo, _hi) in enumerate(grid.boundary):
+        if lo == PERIODIC:
+            take = lambda i: tuple(i if b == a else slice(None) for b in range(dim))  # noqa: E731
+            ub[take(0)], ub[take(n[a] + 1)] = ub[take(n[a])], ub[take(1)]
+    out = np.ones((*(m + 1 for m in n), 2 * dim))
+    for a in range(dim):
+        inner = [slice(1, m + 1) for m in n]
+        left = ub[tuple(slice(0, n[a] + 1) if b == a else inner[b] for b in range(dim))]
+        right = ub[tuple(slice(1, n[a] + 2) if b == a else inner[b] for b in range(dim))]
+        with np.errstate(invalid="ignore"):
+            d = right - left
+        c = bernoulli(d)
+        at = tuple(slice(0, n[a] + 1) if b == a else slice(0, m) for b, m in enumerate(n))
+        out[at + (2 * a,)], out[at + (2 * a + 1,)] = c, c + d
+        for side, face in enumerate((0, n[a])):
+            if grid.boundary[a][side] == NEUMANN:
+                out[tuple(face if b == a else slice(None) for b in range(dim)) + (slice(2 * a, 2 * a + 2),)] = 1.0
+    return out
+
+
+def stability_number(grid, dt: float, coef: np.ndarray | None = None) -> float:
+    r"""``max_I Σ_a Δt/(2Δx_a²) (c_L^{I+½e_a} + c_R^{I−½e_a})``: the explicit scheme's diagonal, which
+    must stay below 1 (without a potential ``Σ_a Δt/Δx_a²``; the drift raises it near steep
+    slopes, by about ``Δt |∂_aU| / (2Δx_a)``)."""
+    if coef is None:
+        coef = drift_coefficients(grid)
+    total = 0.0
+    for a, (n, h) in enumerate(zip(grid.cells, grid.dx)):
+        inner = tuple(slice(0, m) for m in grid.cells)
+        up = tuple(slice(1, n + 1) if b == a else s for b, s in enumerate(inner))
+        total = total + dt / (2 * h * h) * (coef[up + (2 * a,)] + coef[inner + (2 * a + 1,)])
+    return float(np.max(total))

@@ -8,7 +8,7 @@ import taichi as ti
 from ..core import rng
 from ..core.grid import DIRICHLET, NEUMANN, PERIODIC, Grid, numpy_dtype
 from .solver import Solver
-from .fluxes import Fluxes
+from .fluxes import Fluxes, drift_coefficients
 
 
 @ti.data_oriented
@@ -38,6 +38,13 @@ class SPDESolver(Fluxes, Solver):
 
     Boundaries: periodic faces wrap; Neumann faces carry no flux; a Dirichlet face sees a ghost
     cell at the reservoir density (for q and for q̄).
+
+    An external potential U (``grid.potential``) adds the drift of
+    ``dq = ∇·(½∇q + ½ q∇U) dt + ∇·(√max(q,0) dW)``: the deterministic flux becomes the
+    Scharfetter–Gummel form ``½ (c_R q_R − c_L q_L)/Δx_a`` (:func:`.fluxes.drift_coefficients`,
+    weights per face in :attr:`coef`), for q and q̄ alike, so the deterministic scheme keeps the
+    cell-averaged Boltzmann profile e^{−Ū} stationary to round-off; the noise is unchanged. A
+    reservoir cell beyond a Dirichlet side holds ``reservoir_ppc`` particles at its own Ū.
     """
 
     def __init__(self, grid: Grid, dt: float, ensemble: int, key: tuple[int, int], real=ti.f64, gaussian: bool = False,
@@ -72,6 +79,10 @@ class SPDESolver(Fluxes, Solver):
         self.q_min = ti.field(real, shape=())  # smallest q over members and cells [particles / volume]
         self.n_negative = ti.field(ti.i64, shape=())  # cells (over all members) with q < 0
         self.inflow = ti.field(ti.f64, shape=())  # particles entering through Dirichlet sides this step
+        self.drifting = grid.potential is not None  # an external potential's drift is compiled in
+        if self.drifting:  # Scharfetter–Gummel weights (c_L, c_R) per axis of each face, shared by all members
+            self.coef = ti.Vector.field(2 * self.dim, real, shape=(1, *faces))
+            self.coef.from_numpy(drift_coefficients(grid)[None].astype(numpy_dtype(real)))
         self.replaced = None  # u8 field like q: 1 where the caller overwrites q after each step (see replaced_in)
 
     # -- public -------------------------------------------------------------------------
@@ -166,7 +177,7 @@ class SPDESolver(Fluxes, Solver):
                         if i == n and ti.static(hi == PERIODIC):
                             F = F_first
                         elif not ((i == 0 and ti.static(lo == NEUMANN)) or (i == n and ti.static(hi == NEUMANN))):
-                            F = self._flux(i, 0, q_left, q_right, root_left + root_right, bits[g])
+                            F = self._flux(ti.Vector([0, i]), 0, q_left, q_right, root_left + root_right, bits[g])
                         if i == 0:
                             F_first = F
                         else:  # eq. (9) for cell i − 1

@@ -7,7 +7,10 @@ import taichi as ti
 from .. import pools
 from ..core import rng
 from ..core.grid import DIRICHLET, NEUMANN, PERIODIC, Grid, cell_of
+from ..scene.expr import taichi_value
 from .solver import Solver
+
+TABLE_REFINE = {1: 16, 2: 4, 3: 1}  # lattice points per cell and axis of a callable potential's gradient table
 
 
 @ti.data_oriented
@@ -16,7 +19,7 @@ class Walker:
 
     A step of particle ``(id0, birth)`` of member ``e`` at step ``n`` is
 
-    .. math:: x_a \leftarrow x_a + \operatorname{clamp}(\sqrt{Δt}\, Z_a, -Δx_a, Δx_a),
+    .. math:: x_a \leftarrow x_a + \operatorname{clamp}(-\tfrac12 ∂_aU(x)\, Δt + \sqrt{Δt}\, Z_a, -Δx_a, Δx_a),
 
     with ``Z`` keyed on (seed, member, step, id0, birth): the same whichever thread or slot holds it.
     One Philox-4x32-10 counter serves the ``G = 4 // dim`` particles ``id0 = G·k … G·k + G − 1``
@@ -24,6 +27,13 @@ class Walker:
     that holds consecutive identities together (:meth:`ParticleSolver._walk`) makes one call
     for ``G`` particles, and a particle walked alone (:meth:`move`) draws the same numbers.
     (Issue 13: this replaced one counter per particle, changing the 1D and 2D walk streams.)
+
+    The drift of an external potential U (``grid.potential``; Euler–Maruyama, ∇U at the position
+    before the step, the whole axis step clamped so a particle still moves at most one cell) is
+    compiled in only with one: a formula's gradient is differentiated symbolically
+    (:func:`~ti_dk.scene.expr.derivative`) and compiled to arithmetic; a callable's is read from
+    a table of central differences of U on a lattice :data:`TABLE_REFINE` times finer than the
+    grid (nearest lattice point), one cell beyond each side for the reservoirs.
     """
 
     def __init__(self, grid: Grid, dt: float, real, key: tuple[int, int], member0: int = 0):
@@ -34,6 +44,38 @@ class Walker:
         self.lanes = rng.lanes(self.dim)  # counter groups (or particles) a walk loop iteration moves
         self.key = key  # the Philox key of the run (rng.seed_key of its seed)
         rng.prepare()
+        self.drifting = grid.potential is not None  # the drift −½∇U Δt is compiled in
+        self.grads = None  # formulas of ∂_aU
+        self.formula = self.drifting and grid.potential.tree is not None  # else a callable: a table
+        if self.formula:
+            self.grads = grid.potential.gradient_trees()
+        elif self.drifting:
+            self._tabulate(grid.potential)
+
+    def _tabulate(self, potential) -> None:
+        """A callable potential's gradient on the lattice of :meth:`drift` (points ``(k + ½) h/r − h``)."""
+        r = self.refine = TABLE_REFINE[self.dim]
+        pts = [(np.arange((n + 2) * r) + 0.5) * (h / r) - h for n, h in zip(self.grid.cells, self.grid.dx)]
+        u = potential(*np.meshgrid(*pts, indexing="ij", sparse=True))
+        g = np.stack([np.gradient(u, h / r, axis=a) for a, h in enumerate(self.grid.dx)], axis=-1)
+        self.table = ti.Vector.field(self.dim, self.real, shape=u.shape)  # ∂_aU on the lattice [1/length]
+        self.table.from_numpy(g.astype(np.float32 if self.real == ti.f32 else np.float64))
+
+    @ti.func
+    def drift(self, x):
+        """The drift displacement −½ ∇U(x) Δt of one step from position ``x``."""
+        g = ti.Vector.zero(self.real, self.dim)
+        if ti.static(self.formula):
+            coords = [x[a] for a in ti.static(range(self.dim))]
+            for a in ti.static(range(self.dim)):
+                g[a] = taichi_value(self.grads[a], coords, self.real)
+        else:
+            K = ti.Vector.zero(ti.i32, self.dim)
+            for a in ti.static(range(self.dim)):
+                h = ti.static(self.grid.dx[a] / self.refine)
+                K[a] = cell_of(x[a] + self.real(self.grid.dx[a]), self.real(h), self.table.shape[a])
+            g = self.table[K]
+        return self.real(-0.5 * self.dt) * g
 
     @ti.func
     def bits(self, e, id0, birth, step):
@@ -93,11 +135,16 @@ class Walker:
         y = x
         alive = True
         clamped = 0
+        drift = ti.Vector.zero(self.real, self.dim)
+        if ti.static(self.drifting):
+            drift = self.drift(x)
         for a in ti.static(range(self.dim)):
             h = ti.static(self.grid.dx[a])
             L = ti.static(self.grid.lengths[a])
             lo, hi = ti.static(self.grid.boundary[a])
             d = self.real(self.dt**0.5) * rng.normal(bits[g * self.dim + a], self.real)
+            if ti.static(self.drifting):
+                d += drift[a]
             if ti.abs(d) > h:
                 d = ti.math.clamp(d, -self.real(h), self.real(h))
                 clamped += 1
@@ -133,14 +180,23 @@ class Walker:
         Along each axis the offset ``u ∈ (0, 1)`` has density ``1 + b (u − ½)`` with
         ``b = tilt[a] ∈ [−2, 2]`` (0: uniform, as in paper §3), drawn by inverting its CDF
         ``u + b (u² − u)/2 = r`` in the cancellation-free form ``u = 2r / (c + √(c² + 2br))``,
-        ``c = 1 − b/2``.
+        ``c = 1 − b/2``. With a potential the profile is exponential instead, density ∝ e^{−β u}
+        with ``β = tilt[a]`` (the equilibrium e^{−U} of a potential linear across the cell),
+        ``u = −ln(1 − r (1 − e^{−β}))/β`` (``r − β r (1 − r)/2`` for |β| < 10⁻⁴).
         """
         y = ti.Vector.zero(self.real, self.dim)
         for a in ti.static(range(self.dim)):
             r = rng.uniform(bits[a], self.real)
             b = self.real(tilt[a])
-            c = self.real(1.0) - self.real(0.5) * b
-            u = self.real(2.0) * r / (c + ti.sqrt(ti.max(c * c + self.real(2.0) * b * r, self.real(0.0))))
+            u = r
+            if ti.static(self.drifting):
+                steep = ti.abs(b) > 1e-4
+                bs = ti.select(steep, b, self.real(1.0))  # (no division by a constant 0 where tilt is 0)
+                u = ti.select(steep, -ti.log(self.real(1.0) - r * (self.real(1.0) - ti.exp(-bs))) / bs,
+                              r - self.real(0.5) * b * r * (self.real(1.0) - r))
+            else:
+                c = self.real(1.0) - self.real(0.5) * b
+                u = self.real(2.0) * r / (c + ti.sqrt(ti.max(c * c + self.real(2.0) * b * r, self.real(0.0))))
             u = ti.min(u, self.real(1.0 - 2.0**-24))  # stay inside the cell whatever the rounding
             y[a] = (self.real(C[a]) + u) * self.real(self.grid.dx[a])
         return y
@@ -156,7 +212,69 @@ class Walker:
 
 
 @ti.data_oriented
-class ParticleSolver(Solver):
+class Placement:
+    """The initial placements of :class:`ParticleSolver` (kernels on its pool, walker and key):
+    per cell, uniform in the domain, or a fixed total drawn by cell."""
+
+    @ti.kernel
+    def _sample(self, ppc: ti.template()):
+        key = ti.math.uvec2(self.key[0], self.key[1])
+        self.overflow[None] = 0
+        for e in range(self.ensemble):
+            k = 0
+            for C in ti.grouped(ti.ndrange(*self.n)):  # serial within a member: slots in cell order
+                lin = ti.u32(0)
+                for a in ti.static(range(self.dim)):
+                    lin = lin * ti.u32(self.n[a]) + ti.u32(C[a])
+                bits = rng.philox4x32(ti.math.uvec4(lin, 0, self.walker.member(e), ti.u32(rng.SAMPLE_COUNT)), key)
+                m = self.walker.how_many(ppc[C], bits[0])
+                for _ in range(m):
+                    if k < self.capacity:
+                        r = rng.philox4x32(ti.math.uvec4(ti.u32(k), 0, self.walker.member(e), ti.u32(rng.SAMPLE_POSITION)), key)
+                        self.pool.x[0, e, k] = self.walker.in_cell(C, r, ti.Vector.zero(self.real, self.dim))
+                    k += 1
+            if k > self.capacity:
+                self.overflow[None] = 1
+            self.pool.n[0, e] = ti.min(k, self.capacity)
+
+    @ti.kernel
+    def _place(self, total: ti.i32, cdf: ti.template(), by_cell: ti.template()):
+        """``total`` particles per member, uniform in the domain; or (``by_cell``) each in the first
+        cell whose cumulative share ``cdf`` exceeds a uniform (bisection over the cells in C order),
+        uniform within it."""
+        key = ti.math.uvec2(self.key[0], self.key[1])
+        self.overflow[None] = 0
+        if total > self.capacity:
+            self.overflow[None] = 1
+        for e, k in ti.ndrange(self.ensemble, self.capacity):
+            if k < total:
+                r = rng.philox4x32(ti.math.uvec4(ti.u32(k), 0, self.walker.member(e), ti.u32(rng.SAMPLE_POSITION)), key)
+                y = ti.Vector.zero(self.real, self.dim)
+                if ti.static(by_cell):
+                    u = rng.uniform(r[3], ti.f64)
+                    lo, hi = 0, cdf.shape[0] - 1
+                    while lo < hi:
+                        mid = (lo + hi) // 2
+                        if cdf[mid] > u:
+                            hi = mid
+                        else:
+                            lo = mid + 1
+                    C = ti.Vector.zero(ti.i32, self.dim)
+                    for b in ti.static(range(self.dim)):
+                        a = ti.static(self.dim - 1 - b)
+                        C[a] = lo % self.n[a]
+                        lo //= self.n[a]
+                    y = self.walker.in_cell(C, r, ti.Vector.zero(self.real, self.dim))
+                else:
+                    for a in ti.static(range(self.dim)):
+                        y[a] = rng.uniform(r[a], self.real) * self.real(self.grid.lengths[a])
+                self.pool.x[0, e, k] = y
+        for e in range(self.ensemble):
+            self.pool.n[0, e] = ti.min(total, self.capacity)
+
+
+@ti.data_oriented
+class ParticleSolver(Placement, Solver):
     r"""Brownian walkers with D = ½ for every ensemble member (paper §3, the particle model).
 
     One step moves each particle by the step of :meth:`Walker.move` (drawn there as ``bits``,
@@ -200,13 +318,17 @@ class ParticleSolver(Solver):
         return max(cap, 1)
 
     # -- public -------------------------------------------------------------------------
-    def initialize(self, ppc: np.ndarray, exact_uniform: bool = False) -> None:
+    def initialize(self, ppc: np.ndarray, exact_uniform: bool = False, exact: bool = False) -> None:
         """Sample particles: ``ppc`` per cell as ℓ plus one with probability α (mean ℓ + α), uniform
         in the cell; or, with ``exact_uniform``, N = Σ ppc particles uniform in the whole domain
-        (the exact equilibrium of a closed box)."""
+        (the exact equilibrium of a closed box); or, with ``exact``, N = round(Σ ppc) particles
+        each in a cell drawn with probability ppc_I / Σ ppc, uniform in it (a fixed total, as
+        closed walls keep it: the counts are multinomial)."""
         self.cur = 0
-        if exact_uniform:
-            self._place_uniform(int(round(ppc.sum())))
+        if exact_uniform or exact:
+            cdf = ti.field(ti.f64, shape=ppc.size)  # each cell's cumulative share (exact)
+            cdf.from_numpy(np.cumsum(ppc.ravel()) / max(ppc.sum(), 1e-300))
+            self._place(int(round(ppc.sum())), cdf, exact)
         else:
             f = ti.field(ti.f64, shape=self.n)
             f.from_numpy(np.ascontiguousarray(ppc, dtype=np.float64))
@@ -258,43 +380,6 @@ class ParticleSolver(Solver):
             )
 
     # -- kernels ------------------------------------------------------------------------
-    @ti.kernel
-    def _sample(self, ppc: ti.template()):
-        key = ti.math.uvec2(self.key[0], self.key[1])
-        self.overflow[None] = 0
-        for e in range(self.ensemble):
-            k = 0
-            for C in ti.grouped(ti.ndrange(*self.n)):  # serial within a member: slots in cell order
-                lin = ti.u32(0)
-                for a in ti.static(range(self.dim)):
-                    lin = lin * ti.u32(self.n[a]) + ti.u32(C[a])
-                bits = rng.philox4x32(ti.math.uvec4(lin, 0, self.walker.member(e), ti.u32(rng.SAMPLE_COUNT)), key)
-                m = self.walker.how_many(ppc[C], bits[0])
-                for _ in range(m):
-                    if k < self.capacity:
-                        r = rng.philox4x32(ti.math.uvec4(ti.u32(k), 0, self.walker.member(e), ti.u32(rng.SAMPLE_POSITION)), key)
-                        self.pool.x[0, e, k] = self.walker.in_cell(C, r, ti.Vector.zero(self.real, self.dim))
-                    k += 1
-            if k > self.capacity:
-                self.overflow[None] = 1
-            self.pool.n[0, e] = ti.min(k, self.capacity)
-
-    @ti.kernel
-    def _place_uniform(self, total: ti.i32):
-        key = ti.math.uvec2(self.key[0], self.key[1])
-        self.overflow[None] = 0
-        if total > self.capacity:
-            self.overflow[None] = 1
-        for e, k in ti.ndrange(self.ensemble, self.capacity):
-            if k < total:
-                r = rng.philox4x32(ti.math.uvec4(ti.u32(k), 0, self.walker.member(e), ti.u32(rng.SAMPLE_POSITION)), key)
-                y = ti.Vector.zero(self.real, self.dim)
-                for a in ti.static(range(self.dim)):
-                    y[a] = rng.uniform(r[a], self.real) * self.real(self.grid.lengths[a])
-                self.pool.x[0, e, k] = y
-        for e in range(self.ensemble):
-            self.pool.n[0, e] = ti.min(total, self.capacity)
-
     @ti.kernel
     def _init_ids(self):
         for e, k in ti.ndrange(self.ensemble, self.capacity):

@@ -36,7 +36,8 @@ def _spde(ppc: np.ndarray, common: dict, gaussian: bool, track_mean: bool = Fals
 def _particle(scene: Scene, ppc: np.ndarray, common: dict) -> ParticleSolver:
     capacity = ParticleSolver.capacity_for(common["grid"], ppc)  # its memory was checked with the scene
     solver = ParticleSolver(capacity=capacity, **common)
-    solver.initialize(ppc, exact_uniform=scene.method.particle_init == "exact_uniform")
+    solver.initialize(ppc, exact_uniform=scene.method.particle_init == "exact_uniform",
+                      exact=scene.method.particle_init == "exact")
     return solver
 
 

@@ -6,7 +6,8 @@ the exact answer for particles where the scene has one and the hybrid's particle
 (its height: the fraction of members whose region covers the cell). Exact answers
 (:mod:`ti_dk.theory`): a periodic domain started from ℓ + Bernoulli(α) particles per cell has
 Poisson-binomial counts at every time (each particle moving by the clamped walk); a stationary scene (``t_equil``) with N particles in M
-cells, periodic or walled, has Binomial(N, 1/M) counts.
+cells, periodic or walled, has Binomial(N, 1/M) counts, or Binomial(N, p_i) with p_i the cell's share of
+e^{−U} in a potential.
 """
 from __future__ import annotations
 
@@ -38,8 +39,9 @@ class ProfileRenderer:
         whole = np.allclose(self.ppc0, np.round(self.ppc0))
         periodic = all(side == "periodic" for side in scene.grid.boundary[0])
         closed = all(side in ("periodic", "neumann") for side in scene.grid.boundary[0])
-        self.stationary = scene.stats.t_equil is not None and whole and closed
-        self.transient = scene.stats.t_equil is None and periodic
+        fixed = whole or scene.method.particle_init != "per_cell"  # a fixed total N of particles
+        self.stationary = scene.stats.t_equil is not None and fixed and closed
+        self.transient = scene.stats.t_equil is None and periodic and scene.potential is None
         self.fig = Figure(figsize=(11, 7), dpi=DPI)
         FigureCanvasAgg(self.fig)
         self.axes = list(self.fig.subplots(2, 2).flat)
@@ -48,9 +50,11 @@ class ProfileRenderer:
     def exact(self, t: float) -> tuple[dict[str, np.ndarray], str] | tuple[None, None]:
         """The exact per-cell moments of particle counts at ``t`` and their name, or None."""
         if self.stationary:
-            n = int(round(self.ppc0.sum()))
-            m = theory.binomial_moments(n, 1.0 / len(self.x))
-            return {k: np.full(len(self.x), float(v)) for k, v in m.items()}, "exact (binomial)"
+            n, sc = int(round(self.ppc0.sum())), self.scene
+            p = np.full(len(self.x), 1.0 / len(self.x)) if sc.potential is None else \
+                sc.potential.boltzmann_weights(sc.grid.cells, sc.grid.lengths)  # each cell's share of e^{-U}
+            m = [theory.binomial_moments(n, float(pi)) for pi in p]
+            return {k: np.array([mi[k] for mi in m], dtype=float) for k in m[0]}, "exact (binomial)"
         if self.transient and t > 0:
             sc = self.scene
             k = sc.hybrid.particle_substeps if sc.method.name == "hybrid" else 1  # the walk's own step

@@ -39,6 +39,8 @@ def _particles(scene: Scene) -> float:
 def _ppc_max(scene: Scene) -> float:
     """The largest initial or reservoir density, in particles per cell."""
     ppc = [v for k, v in scene.init.params.items() if k.startswith("ppc")]
+    if scene.init.name in ("expression", "array", "boltzmann"):  # no ppc key says it: the density does
+        ppc.append(float(scene.initial_ppc.max()))
     return max(ppc + [Grid.from_scene(scene).reservoir_ppc_max])
 
 

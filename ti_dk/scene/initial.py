@@ -1,11 +1,23 @@
-"""Initial conditions: each returns the density in particles per cell at the cell centres.
+"""Initial conditions: each returns the density in particles per cell at the cell centres (or, for
+``boltzmann``, cell averages).
 
 ``x`` is a tuple of cell-centre coordinate arrays (one per axis, broadcastable to the grid),
-measured from the domain's lower corner. Parameters after ``x`` become scene keys.
+measured from the domain's lower corner. Parameters after ``x`` become scene keys, except those in
+:data:`CONTEXT`, which :func:`density_ppc` supplies.
 """
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
+
+from .expr import numpy_value, parse, axes_used, VARIABLES
+
+CONTEXT = ("x", "weights")  # arguments density_ppc supplies; the rest are scene keys
+
+
+class InitError(ValueError):
+    """An initial condition that cannot be made on this grid; the message says what to change."""
 
 
 def uniform(x, ppc: float = 5.0):
@@ -45,11 +57,54 @@ def spheres(x, ppc_outer: float = 30.0, ppc_inner: float = 15.0, outer_r: float 
     return np.where(outer, ppc_outer, np.where(inner, ppc_inner, 0.0))
 
 
-REGISTRY = {f.__name__: f for f in (uniform, void, ellipses, spheres)}
+def expression(x, density: str = ""):
+    """``density``: particles per cell as a formula in x, y, z (:mod:`.expr`), at the cell centres."""
+    tree = parse(density)
+    extra = sorted(a for a in axes_used(tree) if a >= len(x))
+    if extra:
+        raise InitError(f"{density!r} uses {VARIABLES[extra[0]]} but the grid is {len(x)}D")
+    return np.broadcast_to(numpy_value(tree, x), np.broadcast_shapes(*(a.shape for a in x))).copy()
 
 
-def density_ppc(name: str, params: dict, cells, lengths) -> np.ndarray:
-    """Evaluate initial condition ``name`` on the cell centres of a grid (particles per cell)."""
+def array(x, density_file: str = ""):
+    """Particles per cell read from ``density_file``: a ``.npy`` file, or ``file.h5:/dataset`` (HDF5),
+    shaped like the cells (a relative path is taken from the working directory)."""
+    shape = np.broadcast_shapes(*(a.shape for a in x))
+    path, _, dataset = str(density_file).partition(".h5:")
+    try:
+        if dataset:
+            import h5py
+
+            with h5py.File(path + ".h5", "r") as f:
+                q = np.asarray(f[dataset], dtype=np.float64)
+        else:
+            q = np.asarray(np.load(Path(density_file), allow_pickle=False), dtype=np.float64)
+    except (OSError, KeyError, ValueError, TypeError) as exc:
+        raise InitError(f"cannot read {density_file!r} ({type(exc).__name__}: {exc}); give a .npy file "
+                        "or file.h5:/dataset") from None
+    if q.shape != shape:
+        raise InitError(f"{density_file!r} holds an array of shape {list(q.shape)}: give one of shape {list(shape)} "
+                        "(the cells)")
+    return q
+
+
+def boltzmann(x, ppc: float = 5.0, weights=None):
+    """On average ``ppc`` particles per cell over the domain, distributed as exp(−U) averaged over
+    each cell (the equilibrium of the potential; ``weights``: each cell's share)."""
+    if weights is None:
+        raise InitError("init 'boltzmann' needs a potential: set potential = \"...\" in [grid]")
+    return ppc * weights.size * weights
+
+
+REGISTRY = {f.__name__: f for f in (uniform, void, ellipses, spheres, expression, array, boltzmann)}
+
+
+def density_ppc(name: str, params: dict, cells, lengths, potential=None) -> np.ndarray:
+    """Evaluate initial condition ``name`` on the cell centres of a grid (particles per cell);
+    ``potential`` (:class:`.expr.Potential`) gives ``boltzmann`` its weights."""
     axes = [(np.arange(n) + 0.5) * (L / n) for n, L in zip(cells, lengths)]
     x = tuple(np.meshgrid(*axes, indexing="ij", sparse=True))
-    return np.asarray(REGISTRY[name](x, **params), dtype=np.float64)
+    extra = {}
+    if name == "boltzmann":
+        extra["weights"] = None if potential is None else potential.boltzmann_weights(tuple(cells), tuple(lengths))
+    return np.asarray(REGISTRY[name](x, **params, **extra), dtype=np.float64)

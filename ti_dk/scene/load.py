@@ -19,7 +19,10 @@ else:  # pragma: no cover - exercised on Python 3.10 only
 import numpy as np
 
 from . import initial
+from .expr import ExprError, Potential, numpy_value
+from ..core.grid import Grid
 from ..hybrid.ghosts import HYBRID_STEP_LIMIT, ID_BITS_MIN
+from ..methods.fluxes import drift_coefficients, stability_number
 from .estimates import check_memory
 from .schema import (BOUNDARY_KINDS, CLAMP_WARN, INIT_AXES, INIT_KEYS, KEYS, MAX_FIELD,
                      MAX_MEMBERS, MAX_STEPS, METHODS, NAME_RE, PPC_LIMITS, SCENE_DIR, SECTIONS, WHERE, ClampWarning,
@@ -97,6 +100,8 @@ def load_scene(name_or_path: str | Path, **overrides: Any) -> Scene:
     """
     name, raw = _read_toml(name_or_path)
     flat = _flatten(raw)
+    if overrides.get("init", flat.get("init")) != flat.get("init"):  # another initial condition: not the file's parameters
+        flat = {k: v for k, v in flat.items() if k not in INIT_KEYS}
     flat.update(overrides)
     flat.setdefault("name", name)
     return make_scene(flat)
@@ -125,6 +130,7 @@ def make_scene(flat: dict[str, Any]) -> Scene:
     try:
         _check_choices(scene)
         _check_sizes(scene)
+        _check_initial(scene)
         _check_time_step(scene)
         check_memory(scene)
     except OverflowError:  # a length or time step near the float limits, squared
@@ -141,10 +147,10 @@ def _init_keys(flat: dict[str, Any]) -> InitKeys:
     if not isinstance(ic_name, str) or ic_name not in initial.REGISTRY:
         raise ConfigError(f"unknown initial condition {ic_name!r}: use one of {', '.join(initial.REGISTRY)}")
     ic_sig = inspect.signature(initial.REGISTRY[ic_name])
-    ic_keys = [p for p in ic_sig.parameters if p != "x"]
+    ic_keys = [p for p in ic_sig.parameters if p not in initial.CONTEXT]
     params = {k: flat.pop(k) for k in list(flat) if k in ic_keys}
     for k, p in ic_sig.parameters.items():
-        if k != "x" and k not in params:
+        if k not in initial.CONTEXT and k not in params:
             if p.default is inspect.Parameter.empty:
                 raise ConfigError(f"initial condition '{ic_name}' needs '{k}': set it in [init] or with --set {k}=...")
             params[k] = p.default
@@ -168,8 +174,9 @@ def _grid_keys(flat: dict[str, Any], ic_name: str) -> GridKeys:
     if min(cells) < 2:
         raise ConfigError(f"cells = {list(cells)}: every axis needs at least 2 cells")
     if INIT_AXES.get(ic_name, dim) != dim:
+        fit = [k for k in initial.REGISTRY if INIT_AXES.get(k, dim) == dim]
         raise ConfigError(f"cells = {list(cells)}: initial condition '{ic_name}' is {INIT_AXES[ic_name]}D, "
-                          f"give {INIT_AXES[ic_name]} cell counts")
+                          f"give {INIT_AXES[ic_name]} cell counts (in {dim}D use one of {', '.join(fit)})")
     lengths = flat.get("lengths", [1.0] * dim)
     lengths = tuple(_number("lengths", v) for v in (lengths if isinstance(lengths, list) else [lengths] * dim))
     if len(lengths) != dim:
@@ -184,7 +191,16 @@ def _grid_keys(flat: dict[str, Any], ic_name: str) -> GridKeys:
     reservoir = _per_side("reservoir_ppc", flat.get("reservoir_ppc", 0.0), dim, float)
     for r in (r for sides in reservoir for r in sides):
         Key("real", "", **PPC_LIMITS).check("reservoir_ppc", r)
-    return GridKeys(cells, lengths, boundary, reservoir)
+    potential = flat.get("potential", "")
+    if isinstance(potential, (int, float)) and not isinstance(potential, bool):  # --set potential=3: a constant
+        potential = repr(potential)
+    if not (isinstance(potential, str) or callable(potential)):
+        raise ConfigError(f"potential = {potential!r}: give a formula in x, y, z in quotes")
+    try:
+        Potential.of(potential, dim)
+    except ExprError as exc:
+        raise ConfigError(f"potential = {potential!r}: {exc}") from None
+    return GridKeys(cells, lengths, boundary, reservoir, potential)
 
 
 def _stats_keys(flat: dict[str, Any], t_end: float) -> dict[str, Any]:
@@ -275,11 +291,53 @@ def _check_sizes(scene: Scene) -> None:
         raise ConfigError(f"void_lo = {p['void_lo']}, void_hi = {p['void_hi']}: give void_lo <= void_hi")
 
 
+def _check_initial(scene: Scene) -> None:
+    """A density from a formula, a file or the potential (the others are so by construction): finite, >= 0."""
+    key_ = {"expression": "density", "array": "density_file", "boltzmann": "potential"}.get(scene.init.name)
+    if key_ is None:
+        return
+    try:
+        ppc = scene.initial_ppc
+    except Exception as exc:  # ours say what to change; a callable potential's own error what failed
+        known = isinstance(exc, (ExprError, initial.InitError))
+        raise ConfigError(f"{key_}: " + (str(exc) if known else f"evaluating it failed ({type(exc).__name__}: {exc})")) from None
+    if not np.all(np.isfinite(ppc)) or np.any(ppc < 0):
+        bad = np.argwhere(~(np.isfinite(ppc) & (ppc >= 0)))[0].tolist()
+        raise ConfigError(f"{key_}: the initial density is {ppc[tuple(bad)]} in cell {bad}: "
+                          "give finite densities >= 0 in every cell")
+
+
+def _drift(scene: Scene) -> tuple[float, float]:
+    """With a potential: the FV scheme's stability number (:func:`fluxes.stability_number`) and
+    the largest chance that a particle step along an axis is clamped, its drift −½∂_aU Δt
+    evaluated at the cell centres; a potential that is not finite where the run reads it is refused."""
+    grid, pot = Grid.from_scene(scene), scene.potential
+    try:
+        coef = drift_coefficients(grid)
+        centres = np.meshgrid(*((np.arange(n) + 0.5) * h for n, h in zip(grid.cells, grid.dx)), indexing="ij")
+        u = pot(*centres)
+        grads = [np.asarray(np.gradient(u, h, axis=a)) for a, h in enumerate(grid.dx)] if pot.tree is None else \
+            [np.broadcast_to(numpy_value(t, tuple(centres)), u.shape) for t in pot.gradient_trees()]
+    except Exception as exc:
+        raise ConfigError(f"potential = {pot.source!r}: evaluating it failed ({type(exc).__name__}: {exc})") from None
+    if not (np.all(np.isfinite(coef)) and np.all(np.isfinite(u)) and all(np.all(np.isfinite(g)) for g in grads)):
+        raise ConfigError(f"potential = {pot.source!r} is not finite everywhere on the grid (or in a reservoir "
+                          "cell): give a potential finite on the closed domain")
+    dt = scene.dt / (scene.hybrid.particle_substeps if scene.method.name == "hybrid" else 1)  # a particle step
+    sd, clamp = math.sqrt(dt), 0.0
+    for g, h in zip(grads, grid.dx):
+        mu = 0.5 * float(np.max(np.abs(g))) * dt
+        clamp = max(clamp, 0.5 * (math.erfc((h - mu) / (sd * math.sqrt(2))) + math.erfc((h + mu) / (sd * math.sqrt(2)))))
+    return stability_number(grid, scene.dt, coef), clamp
+
+
 def _check_time_step(scene: Scene) -> None:
-    limit = scene.time.C / scene.stability_number
-    if scene.stability_number >= 1 and not scene.time.allow_unstable and scene.method.name != "particle":
+    number, clamp = (scene.stability_number, scene.clamp_probability) if scene.potential is None else _drift(scene)
+    limit = scene.time.C / number
+    if number >= 1 and not scene.time.allow_unstable and scene.method.name != "particle":
         raise ConfigError(
-            f"C = {scene.time.C} is beyond the explicit stability limit C < {limit:.4g} of the FV scheme on this grid: "
+            f"C = {scene.time.C} is beyond the explicit stability limit C < {limit:.4g} of the FV scheme on this grid"
+            f"{' with this potential' if scene.potential else ''}: "
             f"lower C (e.g. --set C={limit / 2:.4g}) or set allow_unstable=true for a stability experiment"
         )
     if scene.method.name == "hybrid" and scene.n_steps * scene.hybrid.particle_substeps >= HYBRID_STEP_LIMIT:
@@ -288,9 +346,9 @@ def _check_time_step(scene: Scene) -> None:
             "the hybrid numbers "
             f"particle births in 27 bits: give fewer than {HYBRID_STEP_LIMIT:,} (shorter t_end, larger C or fewer "
             "particle_substeps)")
-    if scene.method.name in ("particle", "hybrid") and scene.clamp_probability > CLAMP_WARN:
+    if scene.method.name in ("particle", "hybrid") and clamp > CLAMP_WARN:
         warnings.warn(
-            f"C = {scene.time.C}: a particle step is clamped to ±Δx with probability {scene.clamp_probability:.2g} "
+            f"C = {scene.time.C}: a particle step is clamped to ±Δx with probability {clamp:.2g} "
             f"per axis and step (> {CLAMP_WARN:g}); lower C to make clamping rare",
             ClampWarning,
             stacklevel=3,

@@ -17,6 +17,7 @@ and :func:`work_estimate`, all before Taichi starts.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import importlib.resources
 import inspect
 import math
@@ -28,6 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from . import initial
+from .expr import Potential
 from ..core.grid import Geometry
 from ..hybrid.regrid import RegridParams
 from ..pools import LAYOUTS as POOL_LAYOUTS
@@ -53,7 +55,7 @@ SPDES = ("fv", "gaussian")  # the SPDE a hybrid run keeps on the whole grid
 GHOST_PROFILES = ("mean", "linear", "uniform")  # how sampled particles lie in their cell (see HybridSolver)
 BOUNDARY_KINDS = ("periodic", "neumann", "dirichlet")
 PRECISIONS = ("f32", "f64")
-PARTICLE_INITS = ("per_cell", "exact_uniform")
+PARTICLE_INITS = ("per_cell", "exact_uniform", "exact")
 CLAMP_WARN = 1e-3  # warn when a particle step is clamped with more than this probability
 MAX_STEPS = 2**32 - 1  # the step is one 32-bit word of every random-number counter (rng.py)
 MAX_MEMBERS = 2**32  # so is the member index
@@ -148,6 +150,10 @@ class GridKeys(Geometry):
     reservoir_ppc: tuple[tuple[float, float], ...] = key(
         "special", "dirichlet sides: reservoir density in particles per cell (default 0)",
         form=f"a number in [0, {MAX_PPC:g}]; per axis, or [lo, hi] per axis")
+    potential: Any = key(
+        "special", "external potential U in units of k_BT, drift -grad(U)/2 (default none)", "",
+        form='a formula in x, y, z with + - * / ** sin cos tan exp log sqrt abs tanh atan step pi, '
+             'e.g. "0.5*((x-0.5)/0.08)**2"')
 
 
 @dataclass(frozen=True)
@@ -181,7 +187,8 @@ class MethodKeys:
     seed: int = key("int", "random seed: the same seed gives the same bits on any thread count", 0,
                     lo=0, hi=2**64 - 1)
     precision: str = key("choice", "floating-point precision of the solvers", "f64", choices=PRECISIONS)
-    particle_init: str = key("choice", "particle method: ppc per cell, or exactly ppc x cells uniform particles",
+    particle_init: str = key("choice", "particle method: ppc per cell, exactly ppc x cells uniform particles, or "
+                             "exactly sum(ppc) particles with cells drawn by ppc",
                              "per_cell", choices=PARTICLE_INITS)
     compare: str | None = key("special", "a second method run on the same start and drawn beside (default none)",
                               None, form="one of " + ", ".join(METHODS) + ", none")
@@ -291,15 +298,23 @@ class Scene:
         substeps = self.hybrid.particle_substeps if self.method.name == "hybrid" else 1
         return math.erfc(min(self.grid.dx) / math.sqrt(2 * self.dt / substeps))
 
+    @functools.cached_property
+    def potential(self) -> Potential | None:
+        """The external potential U (None without one): ``grid.potential`` parsed."""
+        return Potential.of(self.grid.potential, self.grid.dim)
+
     @property
     def initial_ppc(self) -> np.ndarray:
-        """The initial condition on the cell centres, in particles per cell."""
-        return initial.density_ppc(self.init.name, self.init.params, self.grid.cells, self.grid.lengths)
+        """The initial condition (cell centres, or cell averages where it says so), in particles per cell."""
+        return initial.density_ppc(self.init.name, self.init.params, self.grid.cells, self.grid.lengths,
+                                   self.potential)
 
     def to_dict(self) -> dict[str, Any]:
-        """The scene as nested tables, as a scene file writes it."""
+        """The scene as nested tables, as a scene file writes it (a callable potential by its name)."""
         d = dataclasses.asdict(self)
         d["init"] = {"name": self.init.name, **self.init.params}
+        if callable(self.grid.potential):
+            d["grid"]["potential"] = self.potential.source
         return d
 
     def flat(self) -> dict[str, Any]:
@@ -344,6 +359,8 @@ INIT_KEYS = {  # the initial conditions' parameters (their defaults are in initi
     "inner_x": Key("real", "spheres: offset of the inner sphere along x"),
     "inner_y": Key("real", "spheres: offset of the inner sphere along y"),
     "inner_z": Key("real", "spheres: offset of the inner sphere along z"),
+    "density": Key("text", "expression: particles per cell as a formula in x, y, z (like potential)"),
+    "density_file": Key("text", "array: particles per cell from a .npy file or file.h5:/dataset, shaped like cells"),
 }
 INIT_AXES = {"ellipses": 2, "spheres": 3}  # initial conditions drawn for one dimension only
 KEYS = {k: f.metadata["key"] for k, (_, f) in WHERE.items()} | INIT_KEYS  # every key by flat name
