@@ -40,12 +40,11 @@ def _keep_freed_memory() -> None:
     """Let glibc's malloc keep the memory of freed large arrays for the next ones.
 
     A regrid makes a dozen grid-sized host arrays (the density, tags, masks, the slot estimate:
-    2–16 MB each at 128³). By default glibc maps each afresh and unmaps it when freed, so every
-    one is paid again in page faults, and on this project's VMs those are slow and erratic: the
-    slot estimate of one sphere3d regrid took 7–95 ms, the same work each time (6–14 ms with
-    this setting, after the first). With no mmap below 1 GiB and no trimming, freed memory stays
-    in the process and is reused. sphere3d, steps 5–65, two pairs: an extension 93–95 → 65–76 ms,
-    a scheduled regrid 276–305 → 230–264 ms.
+    megabytes each in 3D). By default glibc maps each afresh and unmaps it when freed, so every
+    one is paid again in page faults, which on virtual machines are slow and erratic (the same
+    work took ten times longer one time than the next). With no mmap below 1 GiB and no trimming,
+    freed memory stays in the process and is reused (the regrid timings before and after are in
+    ``benchmarks/RESULTS.md``).
     Only where the C library is glibc (``mallopt`` exists); elsewhere nothing changes."""
     try:
         libc = ctypes.CDLL("libc.so.6")
@@ -61,10 +60,10 @@ def _plain_source_positions() -> None:
     Taichi 1.7.4's AST transformer (``ASTTransformerContext.get_pos_info``) formats, for every
     statement and expression of every kernel it builds, the source line with a caret line under
     the node, both wrapped to 80 columns by ``textwrap``, even when nothing fails and the kernel
-    then comes from the offline cache (the frontend runs on every start). Symptom: ellipse2d's
-    solver took 3.0–3.5 s from ``make_solver`` to the end of its second step with a warm cache,
-    about 1 s of it in ``get_pos_info`` (``textwrap`` was the largest Python cost of the start-up);
-    1.9–2.5 s with this. A compilation error still names the file, line and kernel."""
+    then comes from the offline cache (the frontend runs on every start). Symptom: a start-up with
+    a warm kernel cache spends about a second in ``get_pos_info`` (``textwrap`` is the largest
+    Python cost of the start-up; ``benchmarks/RESULTS.md``). A compilation error still names the
+    file, line and kernel."""
     from taichi.lang.ast import ast_transformer_utils as utils
 
     def file_and_line(ctx, node) -> str:

@@ -51,14 +51,14 @@ class Region:
     # -- host -----------------------------------------------------------------------------
     def mask(self) -> np.ndarray:
         """The region of every member, ``(ensemble, *cells)`` booleans (from the host's copy: no
-        device read, which cost an extension 0.5 ms of its 9 in ellipse2d)."""
+        device read, which would cost every extension a kernel launch and a copy)."""
         return self._mask.copy()
 
     def stage(self, masks: np.ndarray) -> tuple[np.ndarray, int, int]:
         """Make ``masks`` the region :meth:`mask` answers from now on; return what the sampler's
         ``cover`` changes ``covered`` by: the flat indices of the cells the region gains, then
-        of those it loses, and the two counts (lists, where a grid-sized field written with
-        ``from_numpy`` and read whole cost sphere3d's extensions about 10 ms each)."""
+        of those it loses, and the two counts (lists: a grid-sized field written with
+        ``from_numpy`` and read whole costs far more at every extension in 3D)."""
         old, self._mask = self._mask, np.array(masks, dtype=bool, order="C")
         new, gone = np.flatnonzero(self._mask & ~old), np.flatnonzero(old & ~self._mask)
         return _joined(new, gone), new.size, gone.size
@@ -97,8 +97,8 @@ class Region:
         ``grown``: its :meth:`grown`, where the caller has made it already).
 
         The lists are made on the host (``np.flatnonzero``: ascending flat indices) and copied in
-        by one kernel. They were made by a kernel (counts per row, a scan, a scatter) from a ring
-        field written with ``from_numpy``: sphere3d 13.9 ms a regrid, 10 of them the write."""
+        by one kernel: making them on the device needs the ring as a grid-sized field written with
+        ``from_numpy``, and that write costs most of a regrid (``benchmarks/RESULTS.md``)."""
         self.ring_mask = self._ring(self.grown(self._mask) if grown is None else grown)
         ring, cover = np.flatnonzero(self.ring_mask), np.flatnonzero(self._mask)
         self.n_ring, self.n_cover = ring.size, cover.size
@@ -111,8 +111,8 @@ class Region:
 
         Host NumPy: the region's dilation ``grown`` (:meth:`grown`) gives the cells inside the grid; a
         reservoir layer beyond a Dirichlet side is the boundary layer of covered cells dilated
-        along the other axes. (It was a kernel over the padded grid that looked at each cell's
-        3^d neighbours: sphere3d's :meth:`lists` took 40 ms with it, 20 ms with this.)"""
+        along the other axes. (A kernel over the padded grid that looks at each cell's
+        3^d neighbours is slower: ``benchmarks/RESULTS.md``.)"""
         m, d = self._mask, self.dim
         out = np.zeros((self.ensemble, *self.padded), dtype=bool)
         inner = (slice(None),) + (slice(1, -1),) * d
