@@ -24,7 +24,7 @@ REGRID_RATE = 1e7  # grid cells per second a hybrid regrid or on-demand extensio
 
 def _particles(scene: Scene) -> float:
     """The particles per member the particle method must hold (an upper bound for huge grids)."""
-    from .particles import ParticleSolver  # pure NumPy; imported here to keep config light
+    from ..methods.particles import ParticleSolver  # pure NumPy; imported here to keep config light
 
     m = math.prod(scene.grid.cells)
     if m <= 10**7:
