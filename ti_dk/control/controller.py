@@ -252,7 +252,7 @@ def _frame_steps(scene: Scene, frames: bool, movie: bool) -> set[int]:
 
 def _frame_writer(outputs: Outputs, scene: Scene, other: Solver | None):
     """The frame writer of this scene: moment profiles in 1D, density panels in 2D and 3D."""
-    from .render import FrameWriter
+    from ..output.render import FrameWriter
 
     return FrameWriter(outputs.frames, _renderer(scene, scene.initial_ppc, other))
 
@@ -320,10 +320,10 @@ def _close_quietly(rf: RunFile, wall: float, error: str) -> None:
 def _renderer(scene: Scene, ppc: np.ndarray, other: Solver | None):
     """What draws this scene's frames: moment profiles in 1D, density panels in 2D and 3D."""
     if scene.grid.dim == 1:
-        from .profiles import ProfileRenderer
+        from ..output.profiles import ProfileRenderer
 
         return ProfileRenderer(scene)
-    from .render import Renderer, colour_max
+    from ..output.render import Renderer, colour_max
 
     methods = scene.method.name + (f" (left) and {scene.method.compare} (right)" if other and scene.grid.dim == 2 else
                               f" (top) and {scene.method.compare} (bottom)" if other else "")

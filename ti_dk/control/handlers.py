@@ -183,7 +183,7 @@ class Frames:
 
     def panels(self) -> list:
         """Member 0 of each method as a frame panel, in particles per cell."""
-        from .render import Panel
+        from ..output.render import Panel
 
         sc, boxes = self.scene, self.solver.boxes
         panels = [Panel(sc.method.name, self.solver.density()[0] * sc.grid.cell_volume, boxes[0] if boxes else None)]
