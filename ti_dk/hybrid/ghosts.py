@@ -119,7 +119,7 @@ class Sampler:
         return b
 
     @ti.func
-    def _placed(self, e, C, lin, k, step, birth, tilt, walked):
+    def _placed(self, e, C, lin, k, step, birth, tilt, walked: ti.template()):
         """Particle ``k`` of cell ``C`` (``lin``: its padded flat index): its identity word, its
         position, whether it is kept and how many of its axis steps were clamped. With ``walked``
         the position is the one after its walk of sub-step ``step`` (:meth:`Walker.move`, the
@@ -129,7 +129,7 @@ class Sampler:
         r = rng.philox4x32(ti.math.uvec4(id0, ti.u32(step), self.walker.member(e), ti.u32(rng.SAMPLE_POSITION)), key)
         y = self.walker.in_cell(C, r, tilt)
         keep, clamped = True, 0
-        if walked:
+        if ti.static(walked):
             z, alive, c = self.walker.move(y, e, id0, ti.u32(birth), ti.u32(step))
             D = self.region.member(e, ti.Vector([cell_of(z[a], self.real(self.grid.dx[a]), self.n[a])
                                                   for a in ti.static(range(self.dim))]))
@@ -138,7 +138,37 @@ class Sampler:
         return id0, y, keep, clamped
 
     @ti.func
-    def sample(self, pool: ti.template(), buf, e, C, lam, step, birth, tilt_on, walked):
+    def _entering(self, e, C, lin, k, m, step, birth, tilt):
+        """Which of ghosts ``k`` and ``k + 1`` of cell ``C`` (``k`` even; ``k + 1 = m`` repeats ``k``
+        and is not counted) enter the region after their walk: :meth:`_placed` of both, their
+        Philox calls made first so that they run side by side (:func:`rng.lanes`), and one walk
+        counter for both where :attr:`Walker.group` ids share one (1D, 2D). The same bits as
+        :meth:`_placed`. Returns ``[keep_k, keep_k+1]`` and their clamped axes."""
+        key = ti.math.uvec2(self.key[0], self.key[1])
+        two = k + 1 < m
+        ids = [(lin << ti.u32(self.id_bits)) | ti.u32(k + h * ti.cast(two, ti.i32)) for h in ti.static(range(2))]
+        pos = [rng.philox4x32(ti.math.uvec4(ids[h], ti.u32(step), self.walker.member(e), ti.u32(rng.SAMPLE_POSITION)),
+                              key) for h in ti.static(range(2))]
+        w0 = self.walker.bits(e, ids[0], ti.u32(birth), ti.u32(step))
+        w1 = w0
+        if ti.static(self.walker.group == 1):
+            w1 = self.walker.bits(e, ids[1], ti.u32(birth), ti.u32(step))
+        walks = [w0, w1]
+        ends = [self._lands(e, C, pos[h], walks[h], ids[h], tilt) for h in ti.static(range(2))]
+        return [ends[0][0], ends[1][0] and two], ends[0][1] + ends[1][1] * ti.cast(two, ti.i32)
+
+    @ti.func
+    def _lands(self, e, C, pos, walk, id0, tilt):
+        """Whether the ghost placed in ``C`` from the words ``pos`` ends in the region after the step
+        from its walk words ``walk`` (:meth:`Walker.bits` of its group), and its clamped axes."""
+        y = self.walker.in_cell(C, pos, tilt)
+        z, alive, c = self.walker.step_with(y, self.walker.own(walk, id0), 0)
+        D = self.region.member(e, ti.Vector([cell_of(z[a], self.real(self.grid.dx[a]), self.n[a])
+                                              for a in ti.static(range(self.dim))]))
+        return alive and self.region.covered[D] != 0, c
+
+    @ti.func
+    def sample(self, pool: ti.template(), buf, e, C, lam, step, birth, tilt_on, walked: ti.template()):
         """Sample ℓ particles plus one with probability α (``lam = ℓ + α``) in cell ``C`` (paper §3),
         placed by :meth:`tilt` (uniform where ``tilt_on`` is 0), and append them to buffer ``buf``
         of member ``e`` (the pool's unit for that cell: :mod:`pool`); returns how many were sampled.
@@ -163,15 +193,17 @@ class Sampler:
         if m > 0 and tilt_on and self.region.inside(C):
             tilt = self.tilt(e, C)
         c, low, clamped = m, ti.u64(0), 0  # appended; which of ghosts 0–63 enter; clamped axes
-        if walked:
+        if ti.static(walked):
             c = 0
-            for k in range(m):
-                _id, _y, keep, cl = self._placed(e, C, lin, k, step, birth, tilt, walked)
+            for j in range((m + 1) // 2):
+                keeps, cl = self._entering(e, C, lin, 2 * j, m, step, birth, tilt)
                 clamped += cl
-                if keep:
-                    c += 1
-                    if k < 64:
-                        low |= ti.u64(1) << ti.cast(k, ti.u64)
+                for h in ti.static(range(2)):
+                    k = 2 * j + h
+                    if keeps[h]:
+                        c += 1
+                        if k < 64:
+                            low |= ti.u64(1) << ti.cast(k, ti.u64)
             if clamped:
                 self.clamped[None] += clamped
         U = pool.unit_of(e, C)
@@ -179,7 +211,7 @@ class Sampler:
         ti.atomic_max(self.need[None], base + c)
         j = base
         for k in range(m):
-            if not walked or k >= 64 or (low >> ti.cast(k, ti.u64)) & ti.u64(1):
+            if ti.static(not walked) or k >= 64 or (low >> ti.cast(k, ti.u64)) & ti.u64(1):
                 id0, y, keep, _ = self._placed(e, C, lin, k, step, birth, tilt, walked)
                 if keep:
                     if j < pool.capacity:
@@ -192,7 +224,7 @@ class Sampler:
     # -- kernels --------------------------------------------------------------------------
     @ti.kernel
     def fill(self, pool: ti.template(), cur: ti.i32, step: ti.i32, n_ring: ti.i32, w: ti.f64, tilt_on: ti.i32,
-             walked: ti.i32):
+             walked: ti.template()):
         """Step 1 of the hybrid: ghost particles appended after the real ones, from
         ``(1 − w) q^n + w q^{n+1,*}`` (``w = s/k`` at particle sub-step s of k; q^n itself when
         k = 1) or the Dirichlet reservoir; with ``walked`` already walked, only those that enter
