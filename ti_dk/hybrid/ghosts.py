@@ -138,36 +138,6 @@ class Sampler:
         return id0, y, keep, clamped
 
     @ti.func
-    def _entering(self, e, C, lin, k, m, step, birth, tilt):
-        """Which of ghosts ``k`` and ``k + 1`` of cell ``C`` (``k`` even; ``k + 1 = m`` repeats ``k``
-        and is not counted) enter the region after their walk: :meth:`_placed` of both, their
-        Philox calls made first so that they run side by side (:func:`rng.lanes`), and one walk
-        counter for both where :attr:`Walker.group` ids share one (1D, 2D). The same bits as
-        :meth:`_placed`. Returns ``[keep_k, keep_k+1]`` and their clamped axes."""
-        key = ti.math.uvec2(self.key[0], self.key[1])
-        two = k + 1 < m
-        ids = [(lin << ti.u32(self.id_bits)) | ti.u32(k + h * ti.cast(two, ti.i32)) for h in ti.static(range(2))]
-        pos = [rng.philox4x32(ti.math.uvec4(ids[h], ti.u32(step), self.walker.member(e), ti.u32(rng.SAMPLE_POSITION)),
-                              key) for h in ti.static(range(2))]
-        w0 = self.walker.bits(e, ids[0], ti.u32(birth), ti.u32(step))
-        w1 = w0
-        if ti.static(self.walker.group == 1):
-            w1 = self.walker.bits(e, ids[1], ti.u32(birth), ti.u32(step))
-        walks = [w0, w1]
-        ends = [self._lands(e, C, pos[h], walks[h], ids[h], tilt) for h in ti.static(range(2))]
-        return [ends[0][0], ends[1][0] and two], ends[0][1] + ends[1][1] * ti.cast(two, ti.i32)
-
-    @ti.func
-    def _lands(self, e, C, pos, walk, id0, tilt):
-        """Whether the ghost placed in ``C`` from the words ``pos`` ends in the region after the step
-        from its walk words ``walk`` (:meth:`Walker.bits` of its group), and its clamped axes."""
-        y = self.walker.in_cell(C, pos, tilt)
-        z, alive, c = self.walker.step_with(y, self.walker.own(walk, id0), 0)
-        D = self.region.member(e, ti.Vector([cell_of(z[a], self.real(self.grid.dx[a]), self.n[a])
-                                              for a in ti.static(range(self.dim))]))
-        return alive and self.region.covered[D] != 0, c
-
-    @ti.func
     def sample(self, pool: ti.template(), buf, e, C, lam, step, birth, tilt_on, walked: ti.template()):
         """Sample ℓ particles plus one with probability α (``lam = ℓ + α``) in cell ``C`` (paper §3),
         placed by :meth:`tilt` (uniform where ``tilt_on`` is 0), and append them to buffer ``buf``
@@ -179,7 +149,9 @@ class Sampler:
         ghosts stay out (ellipse2d: of 17,000 ghosts a step about 1,600 enter; the walk went
         from 63,400 particles a step to 48,000).
         The ghosts that enter are found in a first pass, remembered by index (below 64) and
-        placed again in the second; a cell of more ghosts places those beyond 63 twice."""
+        placed again in the second; a cell of more ghosts places those beyond 63 twice.
+        ``walked`` is a compile-time flag: the regrid's ``cover`` does not compile the walk
+        (sphere3d at 64³: that kernel's first call, from the offline cache, 1.5–1.6 → 0.8–1.0 s)."""
         lin = ti.u32(0)
         for a in ti.static(range(self.dim)):
             lin = lin * ti.u32(self.region.padded[a]) + ti.u32(C[a] + 1)
@@ -195,15 +167,13 @@ class Sampler:
         c, low, clamped = m, ti.u64(0), 0  # appended; which of ghosts 0–63 enter; clamped axes
         if ti.static(walked):
             c = 0
-            for j in range((m + 1) // 2):
-                keeps, cl = self._entering(e, C, lin, 2 * j, m, step, birth, tilt)
+            for k in range(m):
+                _id, _y, keep, cl = self._placed(e, C, lin, k, step, birth, tilt, walked)
                 clamped += cl
-                for h in ti.static(range(2)):
-                    k = 2 * j + h
-                    if keeps[h]:
-                        c += 1
-                        if k < 64:
-                            low |= ti.u64(1) << ti.cast(k, ti.u64)
+                if keep:
+                    c += 1
+                    if k < 64:
+                        low |= ti.u64(1) << ti.cast(k, ti.u64)
             if clamped:
                 self.clamped[None] += clamped
         U = pool.unit_of(e, C)

@@ -55,7 +55,21 @@ class Coupling:
         return D
 
     @ti.kernel
-    def walk(self, pool: ti.template(), cur: ti.i32, step: ti.i32, last: ti.i32):
+    def cross(self, pool: ti.template(), cur: ti.i32, step: ti.i32, first: ti.i32, last: ti.i32, n_ring: ti.i32):
+        """One particle sub-step up to its compaction, in one launch (a launch is a Python call
+        and a start of the thread pool per loop): on the ``first`` sub-step the counters zeroed
+        and S1 (:meth:`_s1`, which the walk does not read: it may come after the fill and
+        before the cap that reads ``q``), then the walk (:meth:`_walk`) and the entry cap
+        (:meth:`_cap`). Top-level loops of a kernel run one after another, as the kernels did."""
+        if first:
+            self.clamped[None] = 0
+            self.p_inflow[None] = 0
+        self._s1(n_ring * first)
+        self._walk(pool, cur, step, last)
+        self._cap(pool, cur, step, last, n_ring)
+
+    @ti.func
+    def _walk(self, pool: ti.template(), cur, step, last):
         """Step 3 (one particle sub-step): walk, mark to keep what ends in the region, add to ΔN;
         on the ``last`` sub-step count the particles per covered cell. The ghosts of this
         sub-step were walked by the fill, which kept only those that entered the region
@@ -88,7 +102,7 @@ class Coupling:
                 O = self.sampler.origin(ident[0])
                 if self.region.inside(O):
                     k = self.sampler.index(ident[0])
-                    if k < 64:  # settled by cap_entries
+                    if k < 64:  # settled by _cap
                         ti.atomic_or(self.entered[self.region.member(e, O)], ti.u64(1) << ti.cast(k, ti.u64))
                         counted = False
                     else:
@@ -158,8 +172,8 @@ class Coupling:
         for J in ti.grouped(self.count):
             self.count[J] = 0
 
-    @ti.kernel
-    def cap_entries(self, pool: ti.template(), cur: ti.i32, step: ti.i32, last: ti.i32, n_ring: ti.i32):
+    @ti.func
+    def _cap(self, pool: ti.template(), cur, step, last, n_ring):
         """Let at most ``⌊q_I V_c + ΔN_I⌋`` of the ghosts of cell ``I`` enter the region in this
         sub-step: the content the SPDE left in it (after S1) plus what the region gave it so far.
         Without this cap a ghost cell holding ``ℓ + α`` particles, ``ℓ + 1`` ghosts of which all
@@ -198,8 +212,8 @@ class Coupling:
             if inside:
                 self.entered[J] = ti.u64(0)
 
-    @ti.kernel
-    def s1(self, n_ring: ti.i32):
+    @ti.func
+    def _s1(self, n_ring):
         r"""S1 of eq. (12), before the walk: each ghost cell ``I`` drops the terms ∓ Δt F / Δx_a that
         eq. (9) applied across its faces with covered cells, ``q_I ← q_I^{n+1,*} − Σ_{S1} F^{i→I}/V_c``,
         so that ``q_I`` holds what the SPDE leaves in it; S2 (``ΔN_I / V_c``) is added by :meth:`sync`."""
