@@ -138,14 +138,13 @@ class HybridSolver(Regridding, RegionSolver):
 
     def _particle_steps(self, n: int) -> None:
         """Steps 3 and 4 after the SPDE's: S1, the k particle sub-steps of Δt/k (ghosts from q
-        interpolated in time), then the synchronisation."""
+        interpolated in time), the synchronisation with the last (:meth:`Coupling.cross`)."""
         c, k = self.coupling, self.substeps
         for s in range(k):
             if s > 0:
                 self._fill_ghosts(n * k + s, s / k, 1)
-            c.cross(self.pool, self.cur, n * k + s, int(s == 0), int(s == k - 1), self.n_ring)
+            c.cross(self.pool, self.cur, n * k + s, int(s == 0), int(s == k - 1), self.n_ring, self.n_cover)
             self._compact()
-        c.sync(self.n_cover, self.n_ring)
 
     def _compact(self) -> None:
         """Keep the marked particles, in the other buffer (the pointer layout may need a larger pool)."""

@@ -55,18 +55,24 @@ class Coupling:
         return D
 
     @ti.kernel
-    def cross(self, pool: ti.template(), cur: ti.i32, step: ti.i32, first: ti.i32, last: ti.i32, n_ring: ti.i32):
-        """One particle sub-step up to its compaction, in one launch (a launch is a Python call
+    def cross(self, pool: ti.template(), cur: ti.i32, step: ti.i32, first: ti.i32, last: ti.i32, n_ring: ti.i32,
+              n_cover: ti.i32):
+        """One particle sub-step but its compaction, in one launch (a launch costs a Python call
         and a start of the thread pool per loop): on the ``first`` sub-step the counters zeroed
         and S1 (:meth:`_s1`, which the walk does not read: it may come after the fill and
-        before the cap that reads ``q``), then the walk (:meth:`_walk`) and the entry cap
-        (:meth:`_cap`). Top-level loops of a kernel run one after another, as the kernels did."""
+        before the cap that reads ``q``), then the walk (:meth:`_walk`), the entry cap
+        (:meth:`_cap`) and on the ``last`` sub-step the synchronisation (:meth:`_sync`, which
+        reads the counts, not the slots: it may come before the compaction). Top-level loops
+        of a kernel run one after another, as the separate kernels did."""
         if first:
             self.clamped[None] = 0
             self.p_inflow[None] = 0
         self._s1(n_ring * first)
         self._walk(pool, cur, step, last)
         self._cap(pool, cur, step, last, n_ring)
+        if last:
+            self.wall_inflow[None] = 0.0
+        self._sync(n_cover * last, n_ring * last)
 
     @ti.func
     def _walk(self, pool: ti.template(), cur, step, last):
@@ -191,9 +197,9 @@ class Coupling:
                 cap = ti.cast(ti.max(room, 0.0), ti.i32)
                 self.cap[J] = cap
                 self.dN[J] -= ti.min(ti.cast(ti.math.popcnt(self.entered[J]), ti.i32), cap)
-        for u in range(pool.units(cur)):
-            e, U, lo, hi = pool.unit(cur, u)
-            for p in range(ti.max(lo, pool.first_new(U)), hi):
+        for u in range(pool.new_units(cur)):
+            e, U, lo, hi = pool.new_unit(cur, u)
+            for p in range(lo, hi):
                 I = pool.index(cur, U, p)
                 ident = pool.pid[I]
                 if pool.marked(I) and ident[1] == ti.u32(step + 1):
@@ -216,7 +222,7 @@ class Coupling:
     def _s1(self, n_ring):
         r"""S1 of eq. (12), before the walk: each ghost cell ``I`` drops the terms ∓ Δt F / Δx_a that
         eq. (9) applied across its faces with covered cells, ``q_I ← q_I^{n+1,*} − Σ_{S1} F^{i→I}/V_c``,
-        so that ``q_I`` holds what the SPDE leaves in it; S2 (``ΔN_I / V_c``) is added by :meth:`sync`."""
+        so that ``q_I`` holds what the SPDE leaves in it; S2 (``ΔN_I / V_c``) is added by :meth:`_sync`."""
         for i in range(n_ring):
             J, inside = self.region.ring_cell(i)
             if inside:
@@ -233,11 +239,10 @@ class Coupling:
                                 corr -= k * self.spde.flux[self._face(J, a, side)][a]
                 self.spde.q[J] += corr
 
-    @ti.kernel
-    def sync(self, n_cover: ti.i32, n_ring: ti.i32):
+    @ti.func
+    def _sync(self, n_cover, n_ring):
         """Step 4: covered cells take their counts; ring cells add S2, ΔN / V_c (eq. 12)."""
         vol = ti.static(self.grid.cell_volume)
-        self.wall_inflow[None] = 0.0
         for i in range(n_cover + n_ring):  # one parallel loop: covered cells, then ring cells
             if i < n_cover:
                 self._take_count(self.region.covered_cell(i))
