@@ -1,7 +1,7 @@
 """Two source trees in one process, stepped alternately: per-kernel time of each, same machine state.
 
     python benchmarks/bench_ab.py --before /path/to/old/tree [--scene sphere3d] [--steps 12] [--threads 2]
-                                  [--set KEY=VALUE ...] [--start 0]
+                                  [--set KEY=VALUE ...] [--start 0] [--check]
 
 On a shared VM whose speed drifts by 20-30 % between runs a minute apart (benchmarks/RESULTS.md),
 before/after figures taken in separate processes cannot resolve a 10 % change. Here both trees'
@@ -9,7 +9,9 @@ before/after figures taken in separate processes cannot resolve a 10 % change. H
 ``ti_dk_after``: the package uses relative imports only), each builds the scene's solver in the
 same Taichi program, and each step of the one is followed by the same step of the other. Printed:
 the mean wall time of a step of each, and the mean time per step of every kernel task (Taichi's
-kernel profiler) that takes more than 0.3 ms in either, with their ratio.
+kernel profiler) that takes more than 0.3 ms in either, with their ratio. ``--set`` takes scene
+overrides as on the command line, ``--start`` untimed steps first, and ``--check`` says at the end
+whether the two solvers' states are bit-identical (a change meant to keep the bits).
 """
 import argparse
 import importlib

@@ -220,8 +220,8 @@ class Coupling:
 
     @ti.func
     def _s1(self, n_ring):
-        r"""S1 of eq. (12), before the walk: each ghost cell ``I`` drops the terms ∓ Δt F / Δx_a that
-        eq. (9) applied across its faces with covered cells, ``q_I ← q_I^{n+1,*} − Σ_{S1} F^{i→I}/V_c``,
+        r"""S1 of eq. (12), before the entry cap (:meth:`cross`): each ghost cell ``I`` drops the terms
+        ∓ Δt F / Δx_a of eq. (9) across its faces with covered cells, ``q_I ← q_I^{n+1,*} − Σ_{S1} F^{i→I}/V_c``,
         so that ``q_I`` holds what the SPDE leaves in it; S2 (``ΔN_I / V_c``) is added by :meth:`_sync`."""
         for i in range(n_ring):
             J, inside = self.region.ring_cell(i)

@@ -28,7 +28,7 @@ class ParticlePool:
         self.n = ti.field(ti.i32, shape=(buffers, ensemble))  # occupied slots per buffer and member
         self.kept = ti.field(ti.i32, shape=ensemble)  # slots the last compaction kept, per member
         self.span = ti.field(ti.i32, shape=())  # blocks holding particles in the buffer a loop reads (units)
-        self.fresh = ti.field(ti.i32, shape=())  # most chunks of slots a member appended since the last compaction (new_units)
+        self.fresh = ti.field(ti.i32, shape=())  # most chunks a member appended since the last compaction (new_units)
         if buffers == 2:
             self.keep = ti.field(ti.u8, shape=(ensemble, capacity))  # 1: the slot survives the compaction
             self.offset = ti.field(ti.i32, shape=(ensemble, self.blocks))  # first target slot of each block
