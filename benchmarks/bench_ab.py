@@ -1,6 +1,7 @@
 """Two source trees in one process, stepped alternately: per-kernel time of each, same machine state.
 
     python benchmarks/bench_ab.py --before /path/to/old/tree [--scene sphere3d] [--steps 12] [--threads 2]
+                                  [--set KEY=VALUE ...] [--start 0] [--check]
 
 On a shared VM whose speed drifts by 20-30 % between runs a minute apart (benchmarks/RESULTS.md),
 before/after figures taken in separate processes cannot resolve a 10 % change. Here both trees'
@@ -8,7 +9,9 @@ before/after figures taken in separate processes cannot resolve a 10 % change. H
 ``ti_dk_after``: the package uses relative imports only), each builds the scene's solver in the
 same Taichi program, and each step of the one is followed by the same step of the other. Printed:
 the mean wall time of a step of each, and the mean time per step of every kernel task (Taichi's
-kernel profiler) that takes more than 0.3 ms in either, with their ratio.
+kernel profiler) that takes more than 0.3 ms in either, with their ratio. ``--set`` takes scene
+overrides as on the command line, ``--start`` untimed steps first, and ``--check`` says at the end
+whether the two solvers' states are bit-identical (a change meant to keep the bits).
 """
 import argparse
 import importlib
@@ -25,6 +28,9 @@ def main():
     p.add_argument("--scene", default="sphere3d")
     p.add_argument("--steps", type=int, default=12)
     p.add_argument("--threads", type=int, default=2)
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="scene overrides, as on the CLI")
+    p.add_argument("--start", type=int, default=0, help="steps taken (both trees, untimed) before the timed ones")
+    p.add_argument("--check", action="store_true", help="at the end, say whether both solvers' states are bit-identical")
     args = p.parse_args()
     here = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
     tmp = tempfile.mkdtemp()
@@ -41,16 +47,19 @@ def main():
     ti.init = lambda *a, **kw: init(*a, **{**kw, "kernel_profiler": True})
     mods["ti_dk_after"].init("cpu", args.threads)
     solvers = {}
+    parse = mods["ti_dk_after"].scene.load.parse_value
+    over = {k.strip(): parse(v.strip(), k.strip()) for k, _, v in (item.partition("=") for item in args.set)}
     for k, m in mods.items():
-        sc = m.load_scene(args.scene)
+        sc = m.load_scene(args.scene, **over)
         solvers[k] = importlib.import_module(k + ".methods.registry").make_solver(sc, sc.initial_ppc)
-    for n in range(3):  # compile
+    for n in range(3 + args.start):  # compile, then the untimed start
         for s in solvers.values():
             s.step(n)
     wall = dict.fromkeys(names, 0.0)
     kernels: dict = {}
     prog = impl.get_runtime().prog
-    for n in range(3, 3 + args.steps):
+    first = 3 + args.start
+    for n in range(first, first + args.steps):
         for k, s in solvers.items():
             ti.sync()
             ti.profiler.clear_kernel_profiler_info()
@@ -64,7 +73,8 @@ def main():
                 task = r.name.split("_c")[0] + "_" + r.name.split("_kernel_")[-1]
                 kernels[k, task] = kernels.get((k, task), 0.0) + r.kernel_time
     steps = args.steps
-    print(f"# {time.strftime('%Y-%m-%d %H:%M')}, {args.scene}, {args.threads} threads, steps 3-{2 + steps}, "
+    print(f"# {time.strftime('%Y-%m-%d %H:%M')}, {args.scene}, {args.threads} threads, steps {first}-{first + steps - 1} "
+          f"{' '.join(args.set)}, "
           f"before={os.path.abspath(args.before)}, after={here}")
     print("| | before | after | after/before |\n|---|---|---|---|")
     print(f"| step, ms | {1e3 * wall[names[0]] / steps:.1f} | {1e3 * wall[names[1]] / steps:.1f} | "
@@ -73,6 +83,11 @@ def main():
         a, b = (kernels.get((k, task), 0.0) / steps for k in names)
         if max(a, b) > 0.3:
             print(f"| {task}, ms | {a:.2f} | {b:.2f} | {b / a if a else float('nan'):.3f} |")
+    if args.check:
+        import numpy as np
+        a, b = (solvers[k].state() for k in names)
+        diff = [k for k in a if k not in b or not np.array_equal(a[k], b[k])]
+        print(f"\nstates after step {first + steps - 1}: " + ("bit-identical" if not diff else f"differ in {diff}"))
 
 
 if __name__ == "__main__":

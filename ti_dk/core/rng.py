@@ -58,6 +58,20 @@ def lanes(dim: int) -> int:
     return 2 if dim == 3 else 1
 
 
+def device_key(key: tuple[int, int]) -> ti.Field:
+    """The key as a field of two unsigned words, which kernels read at run time (``key[0]``,
+    ``key[1]``, as they read a tuple of literals: the same bits).
+
+    A key of literals is baked into every kernel that draws, so the offline cache compiles them
+    all anew for each seed: a warm cache of the same scene with another seed cost sphere3d at 64³
+    13.4 s of compilation in its first step instead of 2.0 (benchmarks/RESULTS.md). Read from a
+    field, one compiled kernel serves every seed. Solvers built by ``make_solver`` get this form.
+    """
+    f = ti.field(ti.u32, shape=2)  # the two Philox key words of the run
+    f.from_numpy(np.array([w & 0xFFFFFFFF for w in key], dtype=np.uint32))
+    return f
+
+
 @ti.func
 def _mulhilo(m: ti.u64, a: ti.u32) -> ti.math.uvec2:
     p = m * ti.cast(a, ti.u64)

@@ -128,7 +128,7 @@ class Sampler:
         return b
 
     @ti.func
-    def _placed(self, e, C, lin, k, step, birth, tilt, walked):
+    def _placed(self, e, C, lin, k, step, birth, tilt, walked: ti.template()):
         """Particle ``k`` of cell ``C`` (``lin``: its padded flat index): its identity word, its
         position, whether it is kept and how many of its axis steps were clamped. With ``walked``
         the position is the one after its walk of sub-step ``step`` (:meth:`Walker.move`, the
@@ -138,7 +138,7 @@ class Sampler:
         r = rng.philox4x32(ti.math.uvec4(id0, ti.u32(step), self.walker.member(e), ti.u32(rng.SAMPLE_POSITION)), key)
         y = self.walker.in_cell(C, r, tilt)
         keep, clamped = True, 0
-        if walked:
+        if ti.static(walked):
             z, alive, c = self.walker.move(y, e, id0, ti.u32(birth), ti.u32(step))
             D = self.region.member(e, ti.Vector([cell_of(z[a], self.real(self.grid.dx[a]), self.n[a])
                                                   for a in ti.static(range(self.dim))]))
@@ -147,7 +147,7 @@ class Sampler:
         return id0, y, keep, clamped
 
     @ti.func
-    def sample(self, pool: ti.template(), buf, e, C, lam, step, birth, tilt_on, walked):
+    def sample(self, pool: ti.template(), buf, e, C, lam, step, birth, tilt_on, walked: ti.template()):
         """Sample ℓ particles plus one with probability α (``lam = ℓ + α``) in cell ``C`` (paper §3),
         placed by :meth:`tilt` (uniform where ``tilt_on`` is 0), and append them to buffer ``buf``
         of member ``e`` (the pool's unit for that cell: :mod:`pool`); returns how many were sampled.
@@ -158,7 +158,9 @@ class Sampler:
         ghosts stay out (ellipse2d: of 17,000 ghosts a step about 1,600 enter; the walk went
         from 63,400 particles a step to 48,000).
         The ghosts that enter are found in a first pass, remembered by index (below 64) and
-        placed again in the second; a cell of more ghosts places those beyond 63 twice."""
+        placed again in the second; a cell of more ghosts places those beyond 63 twice.
+        ``walked`` is a compile-time flag: the regrid's ``cover`` does not compile the walk
+        (sphere3d at 64³: that kernel's first call, from the offline cache, 1.5–1.6 → 0.8–1.0 s)."""
         lin = ti.u32(0)
         for a in ti.static(range(self.dim)):
             lin = lin * ti.u32(self.region.padded[a]) + ti.u32(C[a] + 1)
@@ -172,7 +174,7 @@ class Sampler:
         if m > 0 and tilt_on and self.region.inside(C):
             tilt = self.tilt(e, C)
         c, low, clamped = m, ti.u64(0), 0  # appended; which of ghosts 0–63 enter; clamped axes
-        if walked:
+        if ti.static(walked):
             c = 0
             for k in range(m):
                 _id, _y, keep, cl = self._placed(e, C, lin, k, step, birth, tilt, walked)
@@ -188,7 +190,7 @@ class Sampler:
         ti.atomic_max(self.need[None], base + c)
         j = base
         for k in range(m):
-            if not walked or k >= 64 or (low >> ti.cast(k, ti.u64)) & ti.u64(1):
+            if ti.static(not walked) or k >= 64 or (low >> ti.cast(k, ti.u64)) & ti.u64(1):
                 id0, y, keep, _ = self._placed(e, C, lin, k, step, birth, tilt, walked)
                 if keep:
                     if j < pool.capacity:
@@ -201,7 +203,7 @@ class Sampler:
     # -- kernels --------------------------------------------------------------------------
     @ti.kernel
     def fill(self, pool: ti.template(), cur: ti.i32, step: ti.i32, n_ring: ti.i32, w: ti.f64, tilt_on: ti.i32,
-             walked: ti.i32):
+             walked: ti.template()):
         """Step 1 of the hybrid: ghost particles appended after the real ones, from
         ``(1 − w) q^n + w q^{n+1,*}`` (``w = s/k`` at particle sub-step s of k; q^n itself when
         k = 1) or the Dirichlet reservoir; with ``walked`` already walked, only those that enter

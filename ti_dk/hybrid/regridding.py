@@ -29,7 +29,7 @@ class Regridding:
         ``regrid_floor · threshold``; it then covers every uncovered cell below ``threshold``, so
         the next one waits until a cell falls from above ``threshold`` to below the floor
         (hysteresis; with ``regrid_floor = 1`` the two sets are the same and an extension comes on
-        most steps of ellipse2d). Together with the ghost-entry cap of :meth:`Coupling.cap_entries`
+        most steps of ellipse2d). Together with the ghost-entry cap of :meth:`Coupling._cap`
         this cut the negative cell-steps of ellipse2d at threshold 5 from 47 to 1 (an FV step of
         4.7 σ from 5.6 particles); the cap alone to 8.
         """

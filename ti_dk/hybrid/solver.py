@@ -138,18 +138,13 @@ class HybridSolver(Regridding, RegionSolver):
 
     def _particle_steps(self, n: int) -> None:
         """Steps 3 and 4 after the SPDE's: S1, the k particle sub-steps of Δt/k (ghosts from q
-        interpolated in time), then the synchronisation."""
+        interpolated in time), the synchronisation with the last (:meth:`Coupling.cross`)."""
         c, k = self.coupling, self.substeps
-        c.s1(self.n_ring)
-        c.clamped[None] = 0
-        c.p_inflow[None] = 0
         for s in range(k):
             if s > 0:
                 self._fill_ghosts(n * k + s, s / k, 1)
-            c.walk(self.pool, self.cur, n * k + s, int(s == k - 1))
-            c.cap_entries(self.pool, self.cur, n * k + s, int(s == k - 1), self.n_ring)
+            c.cross(self.pool, self.cur, n * k + s, int(s == 0), int(s == k - 1), self.n_ring, self.n_cover)
             self._compact()
-        c.sync(self.n_cover, self.n_ring)
 
     def _compact(self) -> None:
         """Keep the marked particles, in the other buffer (the pointer layout may need a larger pool)."""
@@ -163,7 +158,7 @@ class HybridSolver(Regridding, RegionSolver):
 
     def _fill_ghosts(self, sub: int, w: float, tilt_on: int) -> None:
         """Ghosts for particle sub-step ``sub`` from ``(1 − w) q^n + w q^{n+1,*}`` (for s > 0 after S1,
-        :meth:`Coupling.s1`: what the SPDE left in the ghost cell); the fill is a pure
+        :meth:`Coupling._s1`: what the SPDE left in the ghost cell); the fill is a pure
         function of its inputs, so a pool that is too small is grown and the fill redone."""
         while True:
             self.sampler.fill(self.pool, self.cur, sub, self.n_ring, w, tilt_on, 1)

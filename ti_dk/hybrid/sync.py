@@ -55,7 +55,27 @@ class Coupling:
         return D
 
     @ti.kernel
-    def walk(self, pool: ti.template(), cur: ti.i32, step: ti.i32, last: ti.i32):
+    def cross(self, pool: ti.template(), cur: ti.i32, step: ti.i32, first: ti.i32, last: ti.i32, n_ring: ti.i32,
+              n_cover: ti.i32):
+        """One particle sub-step but its compaction, in one launch (a launch costs a Python call
+        and a start of the thread pool per loop): on the ``first`` sub-step the counters zeroed
+        and S1 (:meth:`_s1`, which the walk does not read: it may come after the fill and
+        before the cap that reads ``q``), then the walk (:meth:`_walk`), the entry cap
+        (:meth:`_cap`) and on the ``last`` sub-step the synchronisation (:meth:`_sync`, which
+        reads the counts, not the slots: it may come before the compaction). Top-level loops
+        of a kernel run one after another, as the separate kernels did."""
+        if first:
+            self.clamped[None] = 0
+            self.p_inflow[None] = 0
+        self._s1(n_ring * first)
+        self._walk(pool, cur, step, last)
+        self._cap(pool, cur, step, last, n_ring)
+        if last:
+            self.wall_inflow[None] = 0.0
+        self._sync(n_cover * last, n_ring * last)
+
+    @ti.func
+    def _walk(self, pool: ti.template(), cur, step, last):
         """Step 3 (one particle sub-step): walk, mark to keep what ends in the region, add to ΔN;
         on the ``last`` sub-step count the particles per covered cell. The ghosts of this
         sub-step were walked by the fill, which kept only those that entered the region
@@ -88,7 +108,7 @@ class Coupling:
                 O = self.sampler.origin(ident[0])
                 if self.region.inside(O):
                     k = self.sampler.index(ident[0])
-                    if k < 64:  # settled by cap_entries
+                    if k < 64:  # settled by _cap
                         ti.atomic_or(self.entered[self.region.member(e, O)], ti.u64(1) << ti.cast(k, ti.u64))
                         counted = False
                     else:
@@ -158,8 +178,8 @@ class Coupling:
         for J in ti.grouped(self.count):
             self.count[J] = 0
 
-    @ti.kernel
-    def cap_entries(self, pool: ti.template(), cur: ti.i32, step: ti.i32, last: ti.i32, n_ring: ti.i32):
+    @ti.func
+    def _cap(self, pool: ti.template(), cur, step, last, n_ring):
         """Let at most ``⌊q_I V_c + ΔN_I⌋`` of the ghosts of cell ``I`` enter the region in this
         sub-step: the content the SPDE left in it (after S1) plus what the region gave it so far.
         Without this cap a ghost cell holding ``ℓ + α`` particles, ``ℓ + 1`` ghosts of which all
@@ -177,9 +197,9 @@ class Coupling:
                 cap = ti.cast(ti.max(room, 0.0), ti.i32)
                 self.cap[J] = cap
                 self.dN[J] -= ti.min(ti.cast(ti.math.popcnt(self.entered[J]), ti.i32), cap)
-        for u in range(pool.units(cur)):
-            e, U, lo, hi = pool.unit(cur, u)
-            for p in range(ti.max(lo, pool.first_new(U)), hi):
+        for u in range(pool.new_units(cur)):
+            e, U, lo, hi = pool.new_unit(cur, u)
+            for p in range(lo, hi):
                 I = pool.index(cur, U, p)
                 ident = pool.pid[I]
                 if pool.marked(I) and ident[1] == ti.u32(step + 1):
@@ -198,11 +218,11 @@ class Coupling:
             if inside:
                 self.entered[J] = ti.u64(0)
 
-    @ti.kernel
-    def s1(self, n_ring: ti.i32):
-        r"""S1 of eq. (12), before the walk: each ghost cell ``I`` drops the terms ∓ Δt F / Δx_a that
-        eq. (9) applied across its faces with covered cells, ``q_I ← q_I^{n+1,*} − Σ_{S1} F^{i→I}/V_c``,
-        so that ``q_I`` holds what the SPDE leaves in it; S2 (``ΔN_I / V_c``) is added by :meth:`sync`."""
+    @ti.func
+    def _s1(self, n_ring):
+        r"""S1 of eq. (12), before the entry cap (:meth:`cross`): each ghost cell ``I`` drops the terms
+        ∓ Δt F / Δx_a of eq. (9) across its faces with covered cells, ``q_I ← q_I^{n+1,*} − Σ_{S1} F^{i→I}/V_c``,
+        so that ``q_I`` holds what the SPDE leaves in it; S2 (``ΔN_I / V_c``) is added by :meth:`_sync`."""
         for i in range(n_ring):
             J, inside = self.region.ring_cell(i)
             if inside:
@@ -219,11 +239,10 @@ class Coupling:
                                 corr -= k * self.spde.flux[self._face(J, a, side)][a]
                 self.spde.q[J] += corr
 
-    @ti.kernel
-    def sync(self, n_cover: ti.i32, n_ring: ti.i32):
+    @ti.func
+    def _sync(self, n_cover, n_ring):
         """Step 4: covered cells take their counts; ring cells add S2, ΔN / V_c (eq. 12)."""
         vol = ti.static(self.grid.cell_volume)
-        self.wall_inflow[None] = 0.0
         for i in range(n_cover + n_ring):  # one parallel loop: covered cells, then ring cells
             if i < n_cover:
                 self._take_count(self.region.covered_cell(i))

@@ -41,8 +41,16 @@ class BlockSlots:
         return ti.Vector([e, B])
 
     @ti.func
-    def first_new(self, U):
-        return self.fixed[U[0], U[1]]
+    def new_units(self, b):
+        """Units of a loop over the slots appended to buffer ``b`` since the last compaction:
+        every active block (:meth:`new_unit` gives each its appended range)."""
+        return self.units(b)
+
+    @ti.func
+    def new_unit(self, b, u):
+        """Member, key and range ``[lo, hi)`` of the slots of block ``u`` appended since the last compaction."""
+        e, U, _lo, hi = self.unit(b, u)
+        return e, U, self.fixed[U[0], U[1]], hi
 
     @ti.func
     def index(self, b, U, p):

@@ -28,6 +28,7 @@ class ParticlePool:
         self.n = ti.field(ti.i32, shape=(buffers, ensemble))  # occupied slots per buffer and member
         self.kept = ti.field(ti.i32, shape=ensemble)  # slots the last compaction kept, per member
         self.span = ti.field(ti.i32, shape=())  # blocks holding particles in the buffer a loop reads (units)
+        self.fresh = ti.field(ti.i32, shape=())  # most chunks a member appended since the last compaction (new_units)
         if buffers == 2:
             self.keep = ti.field(ti.u8, shape=(ensemble, capacity))  # 1: the slot survives the compaction
             self.offset = ti.field(ti.i32, shape=(ensemble, self.blocks))  # first target slot of each block
@@ -129,9 +130,24 @@ class ParticlePool:
         return ti.Vector([e, 0])
 
     @ti.func
-    def first_new(self, U):
-        """The first slot of unit ``U`` appended since the last compaction (the ghosts of a step)."""
-        return self.kept[U[0]]
+    def new_units(self, b):
+        """Units of a loop over the slots appended to buffer ``b`` since the last compaction (the
+        ghosts of a step): chunks of :data:`BLOCK` slots from each member's ``kept``, :attr:`fresh`
+        of them per member. Not :meth:`units` with the old slots skipped: that loop visited
+        every chunk of the pool (sphere3d at 64³, the cap's pass over the new slots: 2.2 ms a step)."""
+        self.fresh[None] = 0
+        ti.loop_config(serialize=True)  # over members: a serial task (grid.exclusive_scan)
+        for e in range(self.ensemble):
+            ti.atomic_max(self.fresh[None], (self.n[b, e] - self.kept[e] + BLOCK - 1) // BLOCK)
+        return self.ensemble * self.fresh[None]
+
+    @ti.func
+    def new_unit(self, b, u):
+        """Member, key and slot range ``[lo, hi)`` of unit ``u`` of :meth:`new_units` in buffer ``b``."""
+        fresh = self.fresh[None]
+        e, k = u // fresh, u % fresh
+        lo = self.kept[e] + k * BLOCK
+        return e, ti.Vector([e, 0]), lo, ti.min(lo + BLOCK, self.n[b, e])
 
     @ti.func
     def index(self, b, U, p):

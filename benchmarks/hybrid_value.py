@@ -1,0 +1,153 @@
+"""Does the hybrid pay for itself? Its ms/step split by phase and kernel, against the fv step, the
+particle method and a plain walk of as many particles as the hybrid holds, all in one process.
+
+    python benchmarks/hybrid_value.py ellipse2d --steps 300
+    python benchmarks/hybrid_value.py sphere3d --set cells=[64,64,64] --steps 50
+
+The three solvers of the scene (``method`` = hybrid, fv, particle; no compare run, no frames) and
+a fourth, the *plain walk* (the particle method on a uniform density holding as many particles as
+the hybrid after its step 0, same grid), are built in one Taichi program (kernel profiler on) and
+stepped alternately, steps 1 … steps−1, so that they see the same machine load; step 0
+(compilation: the offline cache is on) is timed apart. The plain walk's time is scaled per
+particle to the hybrid's mean count. Printed (Markdown): wall ms/step of each, the hybrid's
+phases (``HybridSolver.timing``), its kernel tasks over 2 % of its step, what is not kernel time
+(launches, host work), and ``hybrid ÷ (fv + plain walk)``: what the coupling costs on top of
+the work it couples.
+"""
+import argparse
+import os
+import platform
+import subprocess
+import sys
+import time
+
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+
+import taichi as ti  # noqa: E402
+from taichi.lang import impl  # noqa: E402
+
+import ti_dk  # noqa: E402
+from ti_dk import load_scene  # noqa: E402
+from ti_dk.methods.registry import make_solver  # noqa: E402
+from ti_dk.scene.load import parse_value  # noqa: E402
+
+
+def _timed(f) -> float:
+    ti.sync()
+    t = time.perf_counter()
+    f()
+    ti.sync()
+    return time.perf_counter() - t
+
+
+def _kernels(prog, into: dict) -> None:
+    """Add the profiler's records since the last clear to ``into`` (task name → seconds)."""
+    prog.sync_kernel_profiler()
+    prog.update_kernel_profiler()
+    for r in prog.get_kernel_profiler_records():  # "<kernel>_c<id>_<n>_kernel_<task>_<kind>"
+        task = r.name.split("_c")[0] + ":" + r.name.split("_kernel_")[-1]
+        into[task] = into.get(task, 0.0) + 1e-3 * r.kernel_time
+    ti.profiler.clear_kernel_profiler_info()
+
+
+def cpu_model() -> str:
+    try:
+        out = subprocess.run(["lscpu"], capture_output=True, text=True).stdout
+        return next(line.split(":", 1)[1].strip() for line in out.splitlines() if line.startswith("Model name"))
+    except (OSError, StopIteration):
+        return platform.processor() or platform.machine()
+
+
+def _plain_walk(sc, count: float):
+    """The particle method on a uniform density holding about ``count`` particles, on the grid of ``sc``."""
+    ncell = 1
+    for c in sc.grid.cells:
+        ncell *= c
+    uni = load_scene("equilibrium1d", method="particle", cells=list(sc.grid.cells), init="uniform",
+                     ppc=count / ncell, C=sc.time.C, precision=sc.method.precision, t_equil=None, histogram=None,
+                     ensemble=1, lengths=list(sc.grid.lengths), compare="none")
+    return make_solver(uni, uni.initial_ppc)
+
+
+def measure(solvers: dict, steps: int, prog) -> tuple[dict, dict, float]:
+    """Steps 1 … steps−1 of every solver, alternating: wall seconds per solver, the hybrid's kernel
+    tasks (seconds) and its mean particle count."""
+    hyb = solvers["hybrid"]
+    for k in hyb.timing:
+        hyb.timing[k] = 0.0
+    wall = dict.fromkeys(solvers, 0.0)
+    kernels: dict = {}
+    count = 0.0
+    ti.profiler.clear_kernel_profiler_info()
+    for n in range(1, steps):
+        for m, s in solvers.items():
+            wall[m] += _timed(lambda: s.step(n))
+            if m == "hybrid":
+                _kernels(prog, kernels)
+                count += hyb.diagnostics()["particles"]
+            else:
+                ti.profiler.clear_kernel_profiler_info()
+    return wall, kernels, count / (steps - 1)
+
+
+def main():
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("scene")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
+    p.add_argument("--steps", type=int, default=300)
+    p.add_argument("--threads", type=int, default=2)
+    args = p.parse_args()
+    over = {k.strip(): parse_value(v.strip(), k.strip()) for k, _, v in (item.partition("=") for item in args.set)}
+    over["compare"] = "none"
+    init = ti.init
+    ti.init = lambda *a, **kw: init(*a, **{**kw, "kernel_profiler": True})
+    ti_dk.init("cpu", args.threads)
+    names = ("hybrid", "fv", "particle")
+    scenes = {m: load_scene(args.scene, **over, method=m) for m in names}
+    solvers, first = {}, {}
+    for m in names:
+        t = time.perf_counter()
+        solvers[m] = make_solver(scenes[m], scenes[m].initial_ppc)
+        ti.sync()
+        first[m] = (time.perf_counter() - t, _timed(lambda: solvers[m].step(0)))
+    t_first = dict(solvers["hybrid"].timing)
+    n_walk = solvers["hybrid"].diagnostics()["particles"]  # after step 0
+    solvers["walk"] = _plain_walk(scenes["hybrid"], n_walk)
+    solvers["walk"].step(0)
+    wall, kernels, mean_n = measure(solvers, args.steps, impl.get_runtime().prog)
+    ms = {m: 1e3 * w / (args.steps - 1) for m, w in wall.items()}
+    report(args, ms, kernels, mean_n, n_walk, solvers, first, t_first)
+
+
+def report(args, ms, kernels, mean_n, n_walk, solvers, first, t_first) -> None:
+    """The Markdown tables of :func:`main`."""
+    steps = args.steps - 1
+    n_particle = solvers["particle"].diagnostics()["mass"]
+    walk_ms = ms["walk"] * mean_n / n_walk  # per particle, at the hybrid's mean count
+    print(f"# {args.scene} {' '.join(args.set)}: {time.strftime('%Y-%m-%d %H:%M')}, {cpu_model()}, "
+          f"{args.threads} threads, steps 1-{steps} (step 0 apart), load average {os.getloadavg()[0]:.1f}\n")
+    print("| | ms/step |\n|---|---|")
+    print(f"| hybrid | {ms['hybrid']:.2f} |")
+    for k, v in solvers["hybrid"].timing.items():
+        print(f"| … {k} (HybridSolver.timing) | {1e3 * v / steps:.2f} |")
+    ktot = 1e3 * sum(kernels.values()) / steps
+    print(f"| … kernel time, all tasks | {ktot:.2f} |")
+    print(f"| … rest: launches, host work, syncs | {ms['hybrid'] - ktot:.2f} |")
+    print(f"| fv step alone | {ms['fv']:.2f} |")
+    print(f"| particle method alone ({n_particle / 1e6:.2f} M particles) | {ms['particle']:.2f} |")
+    print(f"| plain walk of the hybrid's mean {mean_n / 1e3:.0f} k particles (uniform {n_walk / 1e3:.0f} k, "
+          f"scaled) | {walk_ms:.2f} |")
+    print(f"| … the particle method's per-particle cost × that count | {ms['particle'] * mean_n / n_particle:.2f} |")
+    print(f"| **hybrid ÷ (fv + plain walk)** | **{ms['hybrid'] / (ms['fv'] + walk_ms):.2f}** |")
+    print(f"| particle ÷ hybrid | {ms['particle'] / ms['hybrid']:.2f} |")
+    print("\nfirst step (compilation, offline cache on), s: " + ", ".join(
+        f"{m} build {b:.2f} + step 0 {s:.2f}" for m, (b, s) in first.items())
+          + "; hybrid step 0 by part: " + ", ".join(f"{k} {v:.2f}" for k, v in t_first.items()))
+    print("\n| hybrid kernel task | ms/step | share of step |\n|---|---|---|")
+    for task, v in sorted(kernels.items(), key=lambda kv: -kv[1]):
+        if 1e3 * v / steps > 0.02 * ms["hybrid"]:
+            print(f"| {task} | {1e3 * v / steps:.3f} | {100 * 1e3 * v / steps / ms['hybrid']:.1f} % |")
+
+
+if __name__ == "__main__":
+    main()
