@@ -235,8 +235,8 @@ class Sampler:
         ``n_new`` it gains, then the ``n_gone`` it loses): sample the newly covered cells (birth
         ``step | REGRID_BIRTH``), whose q becomes N / V_c, and with ``mark`` mark to keep the
         particles still covered (a region that only grows keeps them all: the caller then skips
-        the marks, a pass over every particle). Loops over the listed cells, not the grid: with
-        both, sphere3d's extensions took 57 → 32 ms. ``scratch`` (i32 per cell, zero) holds the
+        the marks, a pass over every particle). Loops over the listed cells, not the grid (the
+        work follows the region, as an extension's should). ``scratch`` (i32 per cell, zero) holds the
         counts until every tilt has read q."""
         vol = ti.static(self.grid.cell_volume)
         covered, shape = ti.static(self.region.covered, self.region.covered.shape)

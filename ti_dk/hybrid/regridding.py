@@ -41,7 +41,7 @@ class Regridding:
     def _content(self) -> np.ndarray:
         """The SPDE content of every cell, ``q V_c`` (particles per cell, float64), scaled in place:
         :meth:`SPDESolver.density` returns a fresh array, so a regrid makes one grid-sized array
-        here, not two (17 MB each at 128³, at each of sphere3d's 579 regrids)."""
+        here, not two."""
         ppc = self.spde.density()
         ppc *= self.grid.cell_volume
         return ppc
@@ -64,8 +64,8 @@ class Regridding:
         synchronisation brings the diagnostics up to date: no full-grid pass here. With ``sort``
         (the scheduled regrids) the kept particles are put in cell order (:meth:`Coupling.sort`).
         Between steps every particle lies in a covered cell, so a region that only grows keeps
-        them all where they are (:meth:`pools.ParticlePool.settle`; the compaction it replaces
-        copied 5 M particles, 17 ms, at each of sphere3d's 513 extensions)."""
+        them all where they are (:meth:`pools.ParticlePool.settle`; a compaction would copy every
+        particle at every extension)."""
         masks = np.broadcast_to(masks, (self.ensemble, *self.n))
         old = self.regions.mask()
         grown = self.regions.grown(masks)

@@ -138,7 +138,7 @@ class Coupling:
         scan over rows of cells, a scatter). A particle's random numbers are keyed on its identity,
         so the order changes no result; it keeps the walk's cell lookups and ``count`` updates
         local, where the order left by many steps of compaction and appended ghosts scatters them
-        over the grid (measured in sphere3d at step 200: the walk 296–365 → 177–208 ms a step).
+        over the grid (the walk's time with and without: ``benchmarks/RESULTS.md``).
         A pointer pool keeps its particles by block of cells and needs no sort."""
         E, L, rows = ti.static(self.spde.ensemble, self.n[-1], math.prod(self.n[:-1]))
         for u in range(pool.units(b)):
@@ -183,12 +183,12 @@ class Coupling:
         """Let at most ``⌊q_I V_c + ΔN_I⌋`` of the ghosts of cell ``I`` enter the region in this
         sub-step: the content the SPDE left in it (after S1) plus what the region gave it so far.
         Without this cap a ghost cell holding ``ℓ + α`` particles, ``ℓ + 1`` ghosts of which all
-        walk in while its SPDE fluxes also carry content away, goes negative (measured: 6
-        cell-steps in the default ellipse2d run, in cells holding 5–8 particles). The ghosts
+        walk in while its SPDE fluxes also carry content away, goes negative (it did in the
+        default ellipse2d run, in cells holding a few particles: ``benchmarks/RESULTS.md``). The ghosts
         that enter are those of lowest index among the ones that walked in, so the result does
         not depend on thread order; cells with more than 64 ghosts are not capped (64 ghosts all
         walking in does not happen). Only the slots appended since the last compaction can hold
-        this sub-step's ghosts, so only those are read (ellipse2d: that loop 0.19 → 0.09 ms a step)."""
+        this sub-step's ghosts, so only those are read."""
         vol = ti.static(self.grid.cell_volume)
         for i in range(n_ring):
             J, inside = self.region.ring_cell(i)

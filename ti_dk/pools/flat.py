@@ -133,8 +133,8 @@ class ParticlePool:
     def new_units(self, b):
         """Units of a loop over the slots appended to buffer ``b`` since the last compaction (the
         ghosts of a step): chunks of :data:`BLOCK` slots from each member's ``kept``, :attr:`fresh`
-        of them per member. Not :meth:`units` with the old slots skipped: that loop visited
-        every chunk of the pool (sphere3d at 64³, the cap's pass over the new slots: 2.2 ms a step)."""
+        of them per member. Not :meth:`units` with the old slots skipped: that loop would visit
+        every chunk of the pool at every step."""
         self.fresh[None] = 0
         ti.loop_config(serialize=True)  # over members: a serial task (grid.exclusive_scan)
         for e in range(self.ensemble):
