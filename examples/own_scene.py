@@ -1,8 +1,8 @@
 """A scene of your own: written as a TOML file in a temporary folder, loaded, run with the hybrid.
 
-The scene of the tutorial (docs/tutorial-scene.md): a 2D box whose middle holds an ellipse of low
+The scene of the tutorial (docs/tutorial-scene.md): a 2D box whose middle holds a disk of low
 density (2 particles per cell) in a bulk of 30, fed by a reservoir of 30 particles per cell on the
-left wall and closed by a wall on the right; periodic along y. The hybrid covers the ellipse with
+left wall and closed by a wall on the right; periodic along y. The hybrid covers the disk with
 real particles (``threshold = 6``) and follows it as it fills.
 
     python examples/own_scene.py [--small] [--out DIR]
@@ -14,8 +14,8 @@ from pathlib import Path
 import ti_dk
 
 SCENE = """
-name = "lowspot2d"
-description = "A low-density ellipse in a bulk, fed by a reservoir on the left wall"
+name = "lowdisk2d"
+description = "A low-density disk in a bulk, fed by a reservoir on the left wall"
 
 [grid]
 cells = [64, 64]
@@ -24,11 +24,8 @@ boundary = [["dirichlet", "neumann"], "periodic"]   # x: reservoir left, wall ri
 reservoir_ppc = [[30, 0], 0]                         # the left reservoir holds 30 particles per cell
 
 [init]
-name = "ellipses"
-ppc_outer = 30        # the bulk
-ppc_inner = 2         # inside the ellipse: too few for the SPDE
-outer_r = 0.3
-inner_r = 0.6         # 2 x outer_r: the inner shape covers the whole outer ellipse
+name = "expression"  # particles per cell as a formula in x, y (z): 30 in the bulk, 2 in a disk of radius 0.2
+density = "30 - 28*step(0.2 - sqrt((x-0.5)**2 + (y-0.5)**2))"
 
 [time]
 C = 0.0625
@@ -55,7 +52,7 @@ def main() -> None:
     ap.add_argument("--out", help="where the run's files go (default: a temporary folder)")
     args = ap.parse_args()
     with tempfile.TemporaryDirectory() as tmp:
-        path = Path(tmp) / "lowspot2d.toml"
+        path = Path(tmp) / "lowdisk2d.toml"
         path.write_text(SCENE)
         small = dict(cells=[16, 16], t_end=0.0005, output_times=[]) if args.small else {}
         scene = ti_dk.load_scene(path, **small)  # keyword arguments override keys, as --set does

@@ -36,11 +36,11 @@ def test_ensemble_moments_conserves_every_members_particles(tmp_path):
 
 def test_own_scene_loads_the_written_toml_and_runs_the_hybrid(tmp_path):
     out = _run("own_scene.py", tmp_path)
-    assert out.startswith("lowspot2d: A low-density ellipse in a bulk, fed by a reservoir on the left wall; (16, 16) cells")
-    # the ellipse (2 per cell) is below threshold 6: the region is not empty
+    assert out.startswith("lowdisk2d: A low-density disk in a bulk, fed by a reservoir on the left wall; (16, 16) cells")
+    # the disk (2 per cell) is below threshold 6: the region is not empty
     covered = int(re.search(r"particle region: (\d+) cells", out).group(1))
     assert 0 < covered < 256
-    assert "lowspot2d_hybrid.h5" in out
+    assert "lowdisk2d_hybrid.h5" in out
 
 
 def test_read_output_reads_the_run_file_and_the_openpmd_snapshot(tmp_path):

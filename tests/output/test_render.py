@@ -119,6 +119,21 @@ def test_colour_range_and_time_label():
     assert time_label(0.0) == r"$t = 0\ L^2/2D$" and time_label(2.5) == r"$t = 2.50\ L^2/2D$"
 
 
+
+@pytest.mark.parametrize("panels", [1, 2])
+def test_every_frame_shows_its_own_time_inside_the_picture(panels):
+    """The time is redrawn on every frame (an artist left out of the blitted ones keeps the first
+    frame's time) and lies inside the frame however narrow (one panel)."""
+    n = 16
+    r = Renderer((n, n), (1.0, 1.0), panels, 10.0, "doublewell2d: hybrid, 16×16 cells, member 0")
+    ppc = np.full((n, n), 5.0)
+    one, two = (r.frame(t, [Panel("fv", ppc)] * panels) for t in (0.0, 1.5e-3))
+    header = slice(0, 24)
+    assert np.abs(one[header].astype(int) - two[header]).sum() > 0
+    assert r.clock.get_text() == time_label(1.5e-3)
+    box = r.clock.get_window_extent(r.fig.canvas.get_renderer())
+    assert 0 <= box.x0 and box.x1 <= r.width and r.header.get_window_extent().x1 < box.x0
+
 def test_colour_range_and_side_labels_of_a_scene():
     walled = dict(cells=[16, 16], boundary=[["dirichlet", "neumann"], "periodic"], reservoir_ppc=[[40, 5], 0])
     r = Renderer.of(load_scene("ellipse2d", **walled))  # initial density 30 at most, reservoir 40

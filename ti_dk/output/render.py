@@ -25,8 +25,7 @@ mid-plane slices (xy, xz, yz) and a ray-marched volume rendering (a Taichi kerne
 shells of equal density, so the void, what fills it and the denser sphere inside it show; the
 particle region is a translucent red hull (paper Figs. 7–8).
 
-Lengths are in the scene's length unit L and times in L²/2D (the code's units: the particles'
-diffusion coefficient is D = ½).
+Lengths are in the scene's length unit L, times in L²/2D (the code's units: D = ½).
 """
 
 import math
@@ -219,7 +218,9 @@ class Renderer:
         W, H = self.width, self.height
         self.fig = Figure(figsize=(W / DPI, H / DPI), dpi=DPI)
         FigureCanvasAgg(self.fig)
-        self.header = self.fig.text(10 / W, 1 - 8 / H, "", va="top", fontsize=11)
+        size = 11 if W > 900 else 8.5  # one panel: the title and the time share a narrow header
+        self.header = self.fig.text(10 / W, 1 - 8 / H, "", va="top", fontsize=size)
+        self.clock = self.fig.text(1 - 10 / W, 1 - 8 / H, "", va="top", ha="right", fontsize=size)
         self.axes, self.images, self.lines, self.row_titles = [], [], [], []
         self.pixels = []  # per method: (left, top, width, height) of each panel in image pixels
         for r in range(self.rows):
@@ -294,7 +295,7 @@ class Renderer:
     def _mark_dynamic(self):
         """What changes from frame to frame is drawn over a cached picture of the rest (axes, ticks,
         labels, colour bar): text is most of a frame's cost, and the ticks never change."""
-        self.dynamic = [self.header, *self.row_titles]
+        self.dynamic = [self.header, self.clock, *self.row_titles]
         for r in range(self.rows):
             for k, ax in enumerate(self.axes[r]):
                 if k == len(self.planes):  # the volume panel: no ticks, redrawn whole
@@ -325,7 +326,8 @@ class Renderer:
     # -- one frame ----------------------------------------------------------------------
     def frame(self, t: float, panels: list[Panel]) -> np.ndarray:
         """One frame as a ``(height, width, 3)`` uint8 array."""
-        self.header.set_text(f"{self.title}; density in particles per cell     {time_label(t)}")
+        self.header.set_text(f"{self.title}; density in particles per cell")
+        self.clock.set_text(time_label(t))
         for r, p in enumerate(panels):
             ppc = np.asarray(p.ppc)
             neg = int((ppc < 0).sum())
