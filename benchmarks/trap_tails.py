@@ -78,17 +78,19 @@ def main() -> None:
     ap.add_argument("--t-end", type=float, default=0.05)
     ap.add_argument("--cells", type=int, default=40)
     ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--method", default="hybrid", choices=["hybrid", "particle"],
+                    help="particle: the same cells of the exact method, to tell the walk's own bias from the coupling's")
     ap.add_argument("--save", help="an .npz file for the per-cell moments (a second look)")
     args = ap.parse_args()
     ti_dk.init("cpu", args.threads)
-    scene = ti_dk.load_scene("trap1d", method="hybrid", cells=[args.cells], ppc=400 / args.cells, t_end=args.t_end,
+    scene = ti_dk.load_scene("trap1d", method=args.method, cells=[args.cells], ppc=400 / args.cells, t_end=args.t_end,
                              t_equil=None, output_times=[], regrid_interval=0)
     N = int(round(scene.initial_ppc.sum()))
     p = scene.potential.boltzmann_weights((args.cells,), (1.0,))
     q = walk_shares(scene, args.cells)
     _, covered, _ = regrid.region(scene.initial_ppc, scene.hybrid.regrid, (False,))
     cells = np.flatnonzero(covered)
-    print(f"trap1d, hybrid, {args.cells} cells, N = {N}, threshold = {scene.hybrid.threshold}, "
+    print(f"trap1d, {args.method}, {args.cells} cells, N = {N}, threshold = {scene.hybrid.threshold}, "
           f"t_end = {args.t_end} ({scene.n_steps} steps), {args.members} members in chunks of {args.chunk}, "
           f"{args.threads} thread(s); covered cells: {cells.tolist()}")
     mean, var, wall = chunked_moments(scene, args.members, args.chunk)
