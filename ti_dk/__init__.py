@@ -19,7 +19,8 @@ os.environ.setdefault("ENABLE_TAICHI_HEADER_PRINT", "False")
 from .scene.load import available_scenes, load_scene  # noqa: E402
 from .scene.schema import ConfigError, Scene  # noqa: E402
 from .output.files import package_version  # noqa: E402
-from .control.runtime import Result, SimulationError, init  # noqa: E402
+from .control.runtime import Result, init  # noqa: E402
+from .control.signals import SimulationError  # noqa: E402
 from .control.controller import run  # noqa: E402
 
 __version__ = package_version()  # from pyproject.toml, through the installed metadata

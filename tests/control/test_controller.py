@@ -86,7 +86,7 @@ def test_a_stopped_run_keeps_the_diagnostics_of_every_step_done(tmp_path, monkey
     import signal
 
     from ti_dk.control import handlers
-    from ti_dk.control.runtime import Stopped, stop_on_signals
+    from ti_dk.control.signals import Stopped, stop_on_signals
 
     append = handlers.Diagnostics.append
 

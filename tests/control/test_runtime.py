@@ -8,7 +8,8 @@ import pytest
 import taichi as ti
 
 from ti_dk import ConfigError
-from ti_dk.control.runtime import Stopped, check_stop, init, initialized, stats_of, stop_on_signals
+from ti_dk.control.runtime import init, initialized, stats_of
+from ti_dk.control.signals import Stopped, check_stop, stop_on_signals
 
 
 def test_init_refuses_what_cannot_run():

@@ -301,7 +301,7 @@ def test_a_stopped_replace_keeps_the_old_result_and_its_restart_finishes_bit_for
     import signal
 
     from ti_dk.control import handlers
-    from ti_dk.control.runtime import Stopped, stop_on_signals
+    from ti_dk.control.signals import Stopped, stop_on_signals
 
     out, before = finished
     scene = _scene2d(8, t_end=0.01)  # 10 steps
@@ -365,7 +365,7 @@ def test_a_restart_in_place_writes_no_frame_through_a_link_planted_among_the_fra
     import signal
 
     from ti_dk.control import handlers
-    from ti_dk.control.runtime import Stopped, stop_on_signals
+    from ti_dk.control.signals import Stopped, stop_on_signals
 
     scene, out = _scene2d(8, t_end=0.01), tmp_path / "out"  # frames at steps 0, 1 and 10
     write = handlers.Checkpoints.write

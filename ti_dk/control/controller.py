@@ -1,5 +1,5 @@
 """The run controller: a scene's solvers advanced step by step, each step followed by the output
-handlers that are due (:mod:`ti_dk.handlers`), and the end-of-run summary."""
+handlers that are due (:mod:`ti_dk.control.handlers`), and the end-of-run summary."""
 from __future__ import annotations
 
 import math
@@ -19,7 +19,8 @@ from .handlers import Checkpoints, Clock, Diagnostics, Frames, Snapshots, Statis
 from ..output.claim import Outputs
 from ..output.files import RunFile, is_complete, output_error
 from ..methods.registry import make_solver  # also where tests and benchmarks build a solver
-from .runtime import Result, SimulationError, check_stop, init, initialized, stats_of
+from .runtime import Result, init, initialized, stats_of
+from .signals import SimulationError, check_stop
 from ..methods.solver import Solver
 
 COMPARED = ("mass", "min_density", "negative_cells")  # diagnostics of the method run alongside, as compare_*
@@ -54,13 +55,13 @@ def run(scene: Scene, out: str | Path | None = None, progress: bool | None = Non
     scenes, openPMD snapshots of member 0 (``snapshots``).
     ``checkpoint_every`` K writes ``<scene>_<method>_checkpoint.h5`` every K steps (atomically);
     ``restart`` continues from such a file, bit for bit as if never interrupted. ``member0``: the
-    global index of the first member (a chunk of a larger ensemble, see :mod:`ti_dk.ensemble`).
+    global index of the first member (a chunk of a larger ensemble, see :mod:`ti_dk.control.ensemble`).
 
     Every path lies inside ``out`` (:class:`ti_dk.output.claim.Outputs`); the run holds an exclusive
     lock on it, so a second run there is refused, and replaces a complete result only with
     ``overwrite`` and only once it has finished (the old one stays whole if it fails or stops).
-    A signal seen by :func:`ti_dk.runtime.stop_on_signals` stops it between steps
-    (:class:`ti_dk.runtime.Stopped`); an I/O failure raises :class:`ti_dk.io.OutputError`; both
+    A signal seen by :func:`ti_dk.control.signals.stop_on_signals` stops it between steps
+    (:class:`ti_dk.control.signals.Stopped`); an I/O failure raises :class:`ti_dk.output.files.OutputError`; both
     leave the file marked incomplete.
     """
     check_options(scene, out=out, threads=threads, checkpoint_every=checkpoint_every, restart=restart, movie=movie,

@@ -18,7 +18,7 @@ import h5py
 import numpy as np
 from tqdm import tqdm
 
-from . import controller, runtime
+from . import controller, runtime, signals
 from ..scene.load import check_options
 from ..scene.schema import ConfigError, Scene
 from ..output.claim import Outputs
@@ -62,7 +62,7 @@ def run(scene: Scene, executor: str = "local", out: str | Path | None = None, pr
     ``threads`` size the LocalCluster started on this machine unless ``scheduler`` (an address
     such as ``tcp://host:8786``, e.g. from dask-jobqueue) names an existing cluster. The output
     is claimed as :func:`ti_dk.controller.run` claims it (one run at a time, ``overwrite`` to replace a
-    complete result); a signal seen by :func:`ti_dk.runtime.stop_on_signals` stops it between chunks.
+    complete result); a signal seen by :func:`ti_dk.control.signals.stop_on_signals` stops it between chunks.
     """
     if executor not in EXECUTORS:
         raise ConfigError(f"executor '{executor}': use one of {', '.join(EXECUTORS)}")
@@ -130,7 +130,7 @@ def _finished(futures):
 
     pending = set(futures)
     while pending:
-        runtime.check_stop(f" with {len(pending)} chunk(s) to go (the finished ones are kept for the next run)")
+        signals.check_stop(f" with {len(pending)} chunk(s) to go (the finished ones are kept for the next run)")
         try:
             done, pending = wait(pending, timeout=0.5, return_when="FIRST_COMPLETED")
         except TimeoutError:

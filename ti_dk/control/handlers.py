@@ -1,7 +1,7 @@
 """A run's output handlers, each with its own schedule: ``due(step)`` says whether it writes after
 that step, ``write(step)`` writes, and ``part`` names the part of the run its time counts to.
 
-The run controller (:class:`ti_dk.sim.Controller`) asks them in order after every step:
+The run controller (:class:`ti_dk.control.controller.Controller`) asks them in order after every step:
 :class:`Statistics`, :class:`Frames`, :class:`Snapshots`, :class:`Diagnostics`, :class:`Checkpoints`.
 """
 from __future__ import annotations
@@ -168,7 +168,7 @@ class Frames:
     def __init__(self, scene: Scene, solver: Solver, other: Solver | None, writer, steps: set, log: dict,
                  statistics: Statistics):
         self.scene, self.solver, self.other = scene, solver, other
-        self.writer = writer  # ti_dk.render.FrameWriter, or None
+        self.writer = writer  # ti_dk.output.render.FrameWriter, or None
         self.steps = steps  # the steps that get a frame
         self.log = log  # per frame: time and negative cells (restored from a checkpoint or empty)
         self.statistics = statistics  # whose rows 1D frames draw
@@ -211,7 +211,7 @@ class Frames:
 
 
 class Snapshots:
-    """openPMD snapshots of member 0 at the output steps (:meth:`ti_dk.solver.Solver.snapshot`);
+    """openPMD snapshots of member 0 at the output steps (:meth:`ti_dk.methods.solver.Solver.snapshot`);
     ``directory`` None writes none."""
 
     part = "io"

@@ -11,7 +11,6 @@ import numpy as np
 import taichi as ti
 
 from ..scene.schema import ConfigError, Scene
-from .signals import SimulationError, Stopped, check_stop, stop_on_signals  # noqa: F401  (re-exported)
 
 ARCHS = {"cpu": ti.cpu, "cuda": ti.cuda}  # the backends a run may ask for, by their --arch name
 

@@ -11,7 +11,7 @@ import numpy as np
 
 @dataclass(frozen=True)
 class Snapshot:
-    """One member as an openPMD snapshot shows it (:func:`ti_dk.io.write_openpmd`)."""
+    """One member as an openPMD snapshot shows it (:func:`ti_dk.output.files.write_openpmd`)."""
 
     density: np.ndarray  # number density [1/volume], (*cells)
     region: np.ndarray | None = None  # booleans, (*cells): the particle region, for solvers that have one

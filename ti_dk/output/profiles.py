@@ -1,10 +1,10 @@
 """Frames of 1D runs: the ensemble's mean, variance, skewness and kurtosis against x.
 
-One PNG per output time (written like the 2D frames, by :class:`ti_dk.render.FrameWriter`):
+One PNG per output time (written like the 2D frames, by :class:`ti_dk.output.render.FrameWriter`):
 four panels in particles per cell (skewness κ3/κ2^{3/2}, non-excess kurtosis κ4/κ2² + 3), with
 the exact answer for particles where the scene has one and the hybrid's particle region shaded
 (its height: the fraction of members whose region covers the cell). Exact answers
-(:mod:`ti_dk.theory`): a periodic domain started from ℓ + Bernoulli(α) particles per cell has
+(:mod:`ti_dk.core.theory`): a periodic domain started from ℓ + Bernoulli(α) particles per cell has
 Poisson-binomial counts at every time (each particle moving by the clamped walk); a stationary scene (``t_equil``) with N particles in M
 cells, periodic or walled, has Binomial(N, 1/M) counts, or Binomial(N, p_i) with p_i the cell's share of
 e^{−U} in a potential.

@@ -12,7 +12,7 @@ import sys
 import warnings
 
 from . import estimates, load, schema
-from ..control import controller, ensemble, runtime
+from ..control import controller, ensemble, runtime, signals
 from ..output.files import OutputError
 
 
@@ -65,19 +65,19 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 
 
 def main(argv: list[str] | None = None) -> int:
-    with runtime.stop_on_signals():  # first: a signal from here on stops the run with one line
+    with signals.stop_on_signals():  # first: a signal from here on stops the run with one line
         try:
             args = parse_args(argv)
-            runtime.check_stop()
+            signals.check_stop()
             return _run(args)
         except schema.ConfigError as exc:
             return _fail(str(exc))
-        except runtime.Stopped as exc:
+        except signals.Stopped as exc:
             return _fail(str(exc), exc.status)
         except OutputError as exc:
             _fail(str(exc), 1)
             _exit_now(1)
-        except runtime.SimulationError as exc:
+        except signals.SimulationError as exc:
             return _fail(str(exc), 1)
 
 
@@ -98,9 +98,9 @@ def _run(args: argparse.Namespace) -> int:
                        frames=not args.no_frames)
     for message in dict.fromkeys(str(w.message) for w in caught):  # each once (--quick loads twice)
         print(f"ti_dk: warning: {_short(message)}", file=sys.stderr)
-    runtime.check_stop()
+    signals.check_stop()
     runtime.init(args.arch, args.threads)
-    runtime.check_stop()
+    signals.check_stop()
     _announce(scene)
     if args.executor == "dask":
         result = ensemble.run(scene, "dask", out=args.out, progress=not args.no_progress, chunk=args.chunk,

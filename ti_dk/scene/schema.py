@@ -158,7 +158,7 @@ class GridKeys(Geometry):
 
 @dataclass(frozen=True)
 class InitKeys:
-    """``[init]``: the initial condition (a function of :mod:`ti_dk.initial`) and its own keys."""
+    """``[init]``: the initial condition (a function of :mod:`ti_dk.scene.initial`) and its own keys."""
 
     name: str = key("special", "the initial condition ([init] name = ...)", flat="init",
                     form="one of " + ", ".join(initial.REGISTRY))
