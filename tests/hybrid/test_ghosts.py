@@ -44,8 +44,8 @@ def test_sampled_particles_lie_in_their_birth_cells(layout):
             assert sorted(k) == list(range(m))  # indices 0 … m − 1 within the cell
 
 
-@pytest.mark.parametrize("layout", ["flat", "pointer"])
-def test_walked_fill_keeps_exactly_the_ghosts_that_walk_into_the_region(layout):
+@pytest.mark.parametrize("layout,region", [("flat", "slab"), ("pointer", "slab"), ("flat", "boxes")])
+def test_walked_fill_keeps_exactly_the_ghosts_that_walk_into_the_region(layout, region):
     """The hybrid's fill walks its ghosts at once (``walked``): it must append exactly the ghosts of
     the plain fill whose step (:meth:`Walker.move`, drawn here separately) ends in a covered cell,
     at that end point, and count the clamped axes of all of them."""
@@ -56,6 +56,10 @@ def test_walked_fill_keeps_exactly_the_ghosts_that_walk_into_the_region(layout):
                            boundary=[["dirichlet", "neumann"], "periodic"], reservoir_ppc=[[3.5, 0.0], 0.0],
                            void_lo=-1, void_hi=0.3, ppc=6.5, seed=8, pool_layout=layout, C=0.5)
     s = make_solver(scene, scene.initial_ppc)
+    if region == "boxes":  # 3×3 boxes: ring cells whose only covered neighbour is diagonal (one across y's periodic side)
+        mask = np.zeros((2, 12, 10), dtype=np.uint8)
+        mask[0, 5:8, 4:7] = mask[1, 5:8, [8, 9, 0]] = 1
+        s.regions.load_state({"covered": mask, "boxes": np.zeros((0, 5), dtype=np.int64)})
     step, bits = 4, s.sampler.id_bits
     out = {}
     for walked in (0, 1):
