@@ -6,7 +6,7 @@ import math
 import taichi as ti
 
 from ..core import rng
-from ..core.grid import DIRICHLET, across, cell_of
+from ..core.grid import DIRICHLET, PERIODIC, across, cell_of
 from ..methods.particles import Walker
 from .region import Region
 
@@ -17,6 +17,11 @@ ID_BITS_MIN = 8  # hybrid particle ids: birth cell in the high bits, at least th
 HYBRID_STEP_LIMIT = 1 << (32 - rng.PURPOSE_BITS - 1)
 REGRID_BIRTH = HYBRID_STEP_LIMIT  # flag in the birth word of particles sampled at a regrid (ghosts: step + 1)
 TOO_MANY = 2**31 - 1  # `need` when a cell asked for more particles than an id can number
+
+
+def _offset(i: int, a: int) -> int:
+    """Component ``a`` of the ``i``-th neighbour offset ``δ ∈ {−1, 0, 1}^d`` (base-3 digits of ``i``)."""
+    return (i // 3**a) % 3 - 1
 
 
 @ti.data_oriented
@@ -128,23 +133,87 @@ class Sampler:
         return b
 
     @ti.func
-    def _placed(self, e, C, lin, k, step, birth, tilt, walked: ti.template()):
+    def _placed(self, e, C, lin, k, step, birth, tilt, lead, walked: ti.template()):
         """Particle ``k`` of cell ``C`` (``lin``: its padded flat index): its identity word, its
-        position, whether it is kept and how many of its axis steps were clamped. With ``walked``
-        the position is the one after its walk of sub-step ``step`` (:meth:`Walker.move`, the
-        same numbers the hybrid's walk would draw) and it is kept only if it ends in the region."""
+        position, whether it is kept and how many of its axis steps were clamped.
+
+        With ``walked`` (a ghost) the position is the one after its walk of sub-step ``step``
+        (:meth:`Walker.axis_step` per axis, the steps of :meth:`Walker.move`) and it is kept only
+        if it ends in the region; clamped steps are counted for the kept ghosts only. ``lead``
+        (:meth:`lead`) names a face that every covered neighbour lies beyond: a step that does
+        not cross it cannot end covered, so that axis is stepped first and a ghost that stays on
+        this side is dropped without the other axes' normals, moves and the region lookup
+        (most are: about one ghost in ten enters). The kept ones are exactly those of
+        :meth:`Walker.move`'s step, with its numbers.
+        """
         key = ti.math.uvec2(self.key[0], self.key[1])
         id0 = (lin << ti.u32(self.id_bits)) | ti.u32(k)
         r = rng.philox4x32(ti.math.uvec4(id0, ti.u32(step), self.walker.member(e), ti.u32(rng.SAMPLE_POSITION)), key)
         y = self.walker.in_cell(C, r, tilt)
         keep, clamped = True, 0
         if ti.static(walked):
-            z, alive, c = self.walker.move(y, e, id0, ti.u32(birth), ti.u32(step))
-            D = self.region.member(e, ti.Vector([cell_of(z[a], self.real(self.grid.dx[a]), self.n[a])
-                                                  for a in ti.static(range(self.dim))]))
-            keep = alive and self.region.covered[D] != 0
-            y, clamped = z, c
+            w = self.walker
+            drift = ti.Vector.zero(self.real, self.dim)
+            if ti.static(w.drifting):
+                drift = w.drift(y)
+            words = w.own(w.bits(e, id0, ti.u32(birth), ti.u32(step)), id0)
+            z, alive, hit = y, True, True
+            for a in ti.static(range(self.dim)):
+                if lead >> 1 == a:
+                    za, ok, c, raw = w.axis_step(y[a], a, words[a], drift[a])
+                    z[a], alive, clamped = za, ok, c
+                    # 1e-6 of a cell of margin: "crossed" may be said too often, never too rarely
+                    lo = self.real((C[a] + 1e-6) * self.grid.dx[a])
+                    hi = self.real((C[a] + 1 - 1e-6) * self.grid.dx[a])
+                    hit = (lead & 1 == 0 and raw < lo) or (lead & 1 == 1 and raw >= hi)
+            keep = False
+            if hit:
+                for a in ti.static(range(self.dim)):
+                    if lead >> 1 != a:
+                        za, ok, c, _raw = w.axis_step(y[a], a, words[a], drift[a])
+                        z[a], alive, clamped = za, alive and ok, clamped + c
+                D = self.region.member(e, ti.Vector([cell_of(z[a], self.real(self.grid.dx[a]), self.n[a])
+                                                      for a in ti.static(range(self.dim))]))
+                keep = alive and self.region.covered[D] != 0
+            y = z
+            if not keep:
+                clamped = 0
         return id0, y, keep, clamped
+
+    @ti.func
+    def lead(self, e, C):
+        """``2a + s`` for the first axis ``a`` such that every covered cell ``C + δ`` (``δ ∈ {−1, 0,
+        1}^d``, ``δ ≠ 0``, across periodic sides) has ``δ_a = −1`` (``s = 0``) or every one ``+1``
+        (``s = 1``): a walk step (at most one cell per axis) from ``C`` that ends covered crosses
+        that face. −1 where no axis is such (a ring cell in a concave corner of the region)."""
+        total = 0
+        lo = ti.Vector.zero(ti.i32, self.dim)
+        hi = ti.Vector.zero(ti.i32, self.dim)
+        for i in ti.static(range(3**self.dim)):
+            if ti.static(i != (3**self.dim - 1) // 2):  # δ = 0: the cell itself
+                D = ti.Vector.zero(ti.i32, self.dim)
+                ok = True
+                for a in ti.static(range(self.dim)):
+                    D[a] = C[a] + ti.static(_offset(i, a))
+                    if ti.static(self.grid.boundary[a][0] == PERIODIC):
+                        D[a] = (D[a] + self.n[a]) % self.n[a]
+                    ok = ok and 0 <= D[a] < self.n[a]
+                if ok:
+                    if self.region.covered[self.region.member(e, D)] != 0:
+                        total += 1
+                        for a in ti.static(range(self.dim)):
+                            if ti.static(_offset(i, a) < 0):
+                                lo[a] += 1
+                            if ti.static(_offset(i, a) > 0):
+                                hi[a] += 1
+        out = -1
+        for b in ti.static(range(self.dim)):
+            a = ti.static(self.dim - 1 - b)  # the last assignment wins: the first axis
+            if total > 0 and lo[a] == total:
+                out = 2 * a
+            elif total > 0 and hi[a] == total:
+                out = 2 * a + 1
+        return out
 
     @ti.func
     def sample(self, pool: ti.template(), buf, e, C, lam, step, birth, tilt_on, walked: ti.template()):
@@ -174,10 +243,13 @@ class Sampler:
         if m > 0 and tilt_on and self.region.inside(C):
             tilt = self.tilt(e, C)
         c, low, clamped = m, ti.u64(0), 0  # appended; which of ghosts 0–63 enter; clamped axes
+        lead = -1
         if ti.static(walked):
             c = 0
+            if m > 0:
+                lead = self.lead(e, C)
             for k in range(m):
-                _id, _y, keep, cl = self._placed(e, C, lin, k, step, birth, tilt, walked)
+                _id, _y, keep, cl = self._placed(e, C, lin, k, step, birth, tilt, lead, walked)
                 clamped += cl
                 if keep:
                     c += 1
@@ -191,7 +263,7 @@ class Sampler:
         j = base
         for k in range(m):
             if ti.static(not walked) or k >= 64 or (low >> ti.cast(k, ti.u64)) & ti.u64(1):
-                id0, y, keep, _ = self._placed(e, C, lin, k, step, birth, tilt, walked)
+                id0, y, keep, _ = self._placed(e, C, lin, k, step, birth, tilt, lead, walked)
                 if keep:
                     if j < pool.capacity:
                         I = pool.index(buf, U, j)

@@ -80,7 +80,7 @@ class Coupling:
         on the ``last`` sub-step count the particles per covered cell. The ghosts of this
         sub-step were walked by the fill, which kept only those that entered the region
         (:meth:`Sampler.sample`): here they are only accounted for."""
-        self.clamped[None] += self.sampler.clamped[None]  # the ghosts' clamped steps, all of them
+        self.clamped[None] += self.sampler.clamped[None]  # the clamped steps of the ghosts that entered
         for u in range(pool.units(cur)):
             e, U, lo, hi = pool.unit(cur, u)
             for k in range(self.walker.rounds(lo, hi)):

@@ -139,34 +139,47 @@ class Walker:
         if ti.static(self.drifting):
             drift = self.drift(x)
         for a in ti.static(range(self.dim)):
-            h = ti.static(self.grid.dx[a])
-            L = ti.static(self.grid.lengths[a])
-            lo, hi = ti.static(self.grid.boundary[a])
-            d = self.real(self.dt**0.5) * rng.normal(bits[g * self.dim + a], self.real)
-            if ti.static(self.drifting):
-                d += drift[a]
-            if ti.abs(d) > h:
-                d = ti.math.clamp(d, -self.real(h), self.real(h))
-                clamped += 1
-            ya = y[a] + d
-            if ti.static(lo == PERIODIC):
-                if ya < 0:
-                    ya += self.real(L)
-                elif ya >= self.real(L):
-                    ya -= self.real(L)
-            else:
-                if ya < 0:
-                    if ti.static(lo == NEUMANN):
-                        ya = -ya
-                    else:
-                        alive = False
-                elif ya > self.real(L):
-                    if ti.static(hi == NEUMANN):
-                        ya = self.real(2 * L) - ya
-                    else:
-                        alive = False
+            ya, ok, c, _raw = self.axis_step(x[a], a, bits[g * self.dim + a], drift[a])
             y[a] = ya
+            alive = alive and ok
+            clamped += c
         return y, alive, clamped
+
+    @ti.func
+    def axis_step(self, xa, a: ti.template(), word, drift):
+        """Axis ``a`` of :meth:`step_with`: coordinate ``xa`` moved by ``√Δt Z + drift`` (``Z`` from
+        ``word``) clamped to ±Δx_a, then the axis's walls. Returns the new coordinate, whether it is
+        still in the domain, 1 if the step was clamped (else 0), and ``xa + step`` before the walls."""
+        h = ti.static(self.grid.dx[a])
+        L = ti.static(self.grid.lengths[a])
+        lo, hi = ti.static(self.grid.boundary[a])
+        alive = True
+        clamped = 0
+        d = self.real(self.dt**0.5) * rng.normal(word, self.real)
+        if ti.static(self.drifting):
+            d += drift
+        if ti.abs(d) > h:
+            d = ti.math.clamp(d, -self.real(h), self.real(h))
+            clamped = 1
+        raw = xa + d
+        ya = raw
+        if ti.static(lo == PERIODIC):
+            if ya < 0:
+                ya += self.real(L)
+            elif ya >= self.real(L):
+                ya -= self.real(L)
+        else:
+            if ya < 0:
+                if ti.static(lo == NEUMANN):
+                    ya = -ya
+                else:
+                    alive = False
+            elif ya > self.real(L):
+                if ti.static(hi == NEUMANN):
+                    ya = self.real(2 * L) - ya
+                else:
+                    alive = False
+        return ya, alive, clamped, raw
 
     @ti.func
     def member(self, e):

@@ -24,7 +24,7 @@ UNITS = {
     "diagnostics/min_density": "particles per unit volume (L^-d); minimum over members and cells",
     "diagnostics/negative_cells": "cells with negative density" + SUM,
     "diagnostics/boundary_inflow": "particles entering minus leaving through Dirichlet sides in the step" + SUM,
-    "diagnostics/clamped_steps": "particle steps clamped to +-dx along an axis in the step" + SUM,
+    "diagnostics/clamped_steps": "particle steps clamped to +-dx along an axis in the step (hybrid: of its particles and the ghosts that enter)" + SUM,
     "diagnostics/particles": "particles in the particle region" + SUM,
     "diagnostics/regrid_change": "particles created minus removed by the step's regrid" + SUM,
     "regrid/step": "the step after which the region was made",
