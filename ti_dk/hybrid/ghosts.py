@@ -19,6 +19,16 @@ REGRID_BIRTH = HYBRID_STEP_LIMIT  # flag in the birth word of particles sampled 
 TOO_MANY = 2**31 - 1  # `need` when a cell asked for more particles than an id can number
 
 
+def _reach(sigma: float) -> tuple[float, float, float]:
+    """``(σ, E[w], E[w²])`` of ``w = min(σZ, 1)⁺`` (Z standard normal; σ = √Δt/Δx): the distance in
+    cells a clamped step carries a particle towards a face, 0 if it moves away. A particle a
+    distance ``v`` (in cells) from the face crosses it iff ``w > v``."""
+    a = 1.0 / sigma
+    phi0, phia = 1.0 / math.sqrt(2 * math.pi), math.exp(-0.5 * a * a) / math.sqrt(2 * math.pi)
+    tail = 0.5 * math.erfc(a / math.sqrt(2))  # P(Z > 1/σ): the clamped steps
+    return sigma, sigma * (phi0 - phia) + tail, sigma**2 * (0.5 - tail - a * phia) + tail
+
+
 def _offset(i: int, a: int) -> int:
     """Component ``a`` of the ``i``-th neighbour offset ``δ ∈ {−1, 0, 1}^d`` (base-3 digits of ``i``)."""
     return (i // 3**a) % 3 - 1
@@ -45,6 +55,10 @@ class Sampler:
         assert profile != "mean" or spde.track_mean, "ghost_profile 'mean' reads the SPDE's q̄"
         if substeps > 1:
             self.q_old = ti.field(spde.real, shape=(spde.ensemble, *self.n))  # q^n while q holds q^{n+1,*} [1/volume]
+        # ghosts drawn as the ones that cross the lead face (:meth:`entering`); not with a potential,
+        # whose drift depends on the position
+        self.direct = not walker.drifting
+        self.reach = [_reach(math.sqrt(walker.dt) / h) for h in self.grid.dx]  # (σ, E w, E w²) per axis
         self.need = ti.field(ti.i32, shape=())  # most slots a member asked for (TOO_MANY: a cell overflowed)
         self.clamped = ti.field(ti.i64, shape=())  # axis steps clamped in the ghosts' walk of the last fill
         self.created = ti.field(ti.i64, shape=())  # particles sampled at the last regrid
@@ -216,20 +230,120 @@ class Sampler:
         return out
 
     @ti.func
+    def _lead_profile(self, lead, tilt):
+        """For the lead face ``lead`` (:meth:`lead`) and the cell's profile ``tilt`` (:meth:`tilt`):
+        ``(σ, E w, E w², c0, c1)``, the axis's :func:`_reach` and the profile's density at distance
+        ``v`` (cells) from the face, ``c0 + c1 v`` (:meth:`Walker.in_cell`: ``1 + b (u − ½)``)."""
+        sig, ew, ew2, b = 0.0, 0.0, 0.0, 0.0
+        for a in ti.static(range(self.dim)):
+            if lead >> 1 == a:
+                # (a plain assignment: `sig, ... = ti.static(...)` would bind new names, not assign these)
+                sig, ew, ew2 = [ti.f64(ti.static(self.reach[a][i])) for i in ti.static(range(3))]
+                b = ti.cast(tilt[a], ti.f64)
+        c0, c1 = 1.0 - 0.5 * b, b  # the low face: v = u
+        if lead & 1:  # the high face: v = 1 − u
+            c0, c1 = 1.0 + 0.5 * b, -b
+        return sig, ew, ew2, c0, c1
+
+    @ti.func
+    def crossing(self, m, lead, tilt, word):
+        r"""How many of the cell's ``m`` ghosts cross its lead face in their walk: ``Bin(m, p)`` (each
+        crosses on its own), ``p = ∫∫ (c0 + c1 v) φ(z) 1[w(z) > v] dv dz = c0 E w + c1 E w² / 2``
+        (:meth:`_lead_profile`), drawn by inversion of one uniform ``word``."""
+        _sig, ew, ew2, c0, c1 = self._lead_profile(lead, tilt)
+        p = ti.min(ti.max(c0 * ew + 0.5 * c1 * ew2, 0.0), 1.0 - 1e-12)
+        u = rng.uniform(word, ti.f64)
+        P = ti.pow(1.0 - p, ti.cast(m, ti.f64))
+        F, k = P, 0
+        while u > F and k < m:
+            P *= ti.cast(m - k, ti.f64) / ti.cast(k + 1, ti.f64) * p / (1.0 - p)
+            k += 1
+            F += P
+        return k
+
+    @ti.func
+    def entering(self, e, C, lin, k, step, birth, tilt, lead):
+        r"""Ghost ``k`` of the :meth:`crossing` ones of cell ``C``: its identity, its position after its
+        walk, whether that is covered and its clamped steps (as :meth:`_placed` with ``walked``).
+
+        Along the lead axis the pair (distance ``v`` to the face, step ``w``) is drawn from its law
+        given a crossing, ``∝ (c0 + c1 v) φ(z) 1[v < w(z)]``: ``z`` from the Rayleigh density
+        ``z φ(z)`` (``√(−2 ln U)``) kept with probability ``min(1, 1/(σz)) (c0 + c1 w/2) / (c0 +
+        max(c1, 0)/2)`` (the clamp, and the profile's mass below ``w``), then ``v`` from ``c0 + c1 v``
+        on ``(0, w)`` by inversion; counters ``(id, step, member, SAMPLE_ENTRY + attempt)``. The
+        other axes are those of a ghost of :meth:`_placed` (position words, then the walk's), drawn
+        without condition: a crossing ends covered or not by them (every covered neighbour lies
+        beyond the lead face)."""
+        key = ti.math.uvec2(self.key[0], self.key[1])
+        id0 = (lin << ti.u32(self.id_bits)) | ti.u32(k)
+        sig, _ew, _ew2, c0, c1 = self._lead_profile(lead, tilt)
+        top = c0 + 0.5 * ti.max(c1, 0.0)
+        w, v, t, done = 0.0, 0.0, 0, False
+        while not done and t < 1000:
+            r = rng.philox4x32(ti.math.uvec4(id0, ti.u32(step), self.walker.member(e),
+                                             ti.u32(rng.SAMPLE_ENTRY) | (ti.u32(t) << rng.PURPOSE_BITS)), key)
+            z = ti.sqrt(-2.0 * ti.log(rng.uniform(r[0], ti.f64)))
+            w = ti.min(sig * z, 1.0)
+            done = rng.uniform(r[1], ti.f64) * top * ti.max(sig * z, 1.0) < c0 + 0.5 * c1 * w
+            R = rng.uniform(r[2], ti.f64) * (c0 * w + 0.5 * c1 * w * w)
+            v = 2.0 * R / (c0 + ti.sqrt(ti.max(c0 * c0 + 2.0 * c1 * R, 0.0)))
+            t += 1
+        y = ti.Vector.zero(self.real, self.dim)
+        words = ti.math.uvec4(0)
+        if ti.static(self.dim > 1):
+            p = rng.philox4x32(ti.math.uvec4(id0, ti.u32(step), self.walker.member(e), ti.u32(rng.SAMPLE_POSITION)), key)
+            y = self.walker.in_cell(C, p, tilt)
+            words = self.walker.own(self.walker.bits(e, id0, ti.u32(birth), ti.u32(step)), id0)
+        alive, clamped = True, 0
+        for a in ti.static(range(self.dim)):
+            h, L = ti.static(self.grid.dx[a], self.grid.lengths[a])
+            if lead >> 1 == a:
+                x = (ti.cast(C[a], ti.f64) + v - w) * h  # the low face: from v above it to w − v below
+                if lead & 1:
+                    x = (ti.cast(C[a], ti.f64) + 1.0 - v + w) * h
+                if ti.static(self.grid.boundary[a][0] == PERIODIC):
+                    if x < 0:
+                        x += L
+                    elif x >= L:
+                        x -= L
+                y[a] = self.real(x)
+                clamped = ti.cast(w >= 1.0, ti.i32)
+            else:
+                ya, ok, c, _raw = self.walker.axis_step(y[a], a, words[a], self.real(0.0))
+                y[a], alive, clamped = ya, alive and ok, clamped + c
+        D = self.region.member(e, ti.Vector([cell_of(y[a], self.real(self.grid.dx[a]), self.n[a])
+                                              for a in ti.static(range(self.dim))]))
+        keep = alive and self.region.covered[D] != 0
+        if not keep:
+            clamped = 0
+        return id0, y, keep, clamped
+
+    @ti.func
+    def _ghost(self, e, C, lin, k, step, birth, tilt, lead):
+        """Ghost ``k`` of :meth:`sample`: :meth:`entering` where the cell has a lead face and no
+        potential drifts, else :meth:`_placed` with the walk."""
+        id0, y, keep, cl = ti.u32(0), ti.Vector.zero(self.real, self.dim), False, 0
+        if ti.static(self.direct):
+            if lead >= 0:
+                id0, y, keep, cl = self.entering(e, C, lin, k, step, birth, tilt, lead)
+            else:
+                id0, y, keep, cl = self._placed(e, C, lin, k, step, birth, tilt, lead, 1)
+        else:
+            id0, y, keep, cl = self._placed(e, C, lin, k, step, birth, tilt, lead, 1)
+        return id0, y, keep, cl
+
+    @ti.func
     def sample(self, pool: ti.template(), buf, e, C, lam, step, birth, tilt_on, walked: ti.template()):
         """Sample ℓ particles plus one with probability α (``lam = ℓ + α``) in cell ``C`` (paper §3),
         placed by :meth:`tilt` (uniform where ``tilt_on`` is 0), and append them to buffer ``buf``
         of member ``e`` (the pool's unit for that cell: :mod:`pool`); returns how many were sampled.
 
-        With ``walked`` (the ghosts of a particle sub-step ``step``) each is walked at once
-        (:meth:`_placed`) and only those that end in the region are appended, in index order: a
-        ghost that stays out takes no slot, and the hybrid's walk does not move it again. Most
-        ghosts stay out (ellipse2d: of 17,000 ghosts a step about 1,600 enter; the walk went
-        from 63,400 particles a step to 48,000).
-        The ghosts that enter are found in a first pass, remembered by index (below 64) and
-        placed again in the second; a cell of more ghosts places those beyond 63 twice.
-        ``walked`` is a compile-time flag: the regrid's ``cover`` does not compile the walk
-        (sphere3d at 64³: that kernel's first call, from the offline cache, 1.5–1.6 → 0.8–1.0 s)."""
+        With ``walked`` (the ghosts of a particle sub-step ``step``) only the ghosts whose walk ends
+        in the region are appended, in index order, already walked (the hybrid's walk does not
+        move them again): where the cell has a lead face and no potential, the :meth:`crossing`
+        ones drawn by :meth:`entering`, else each ghost walked by :meth:`_placed`. Those that enter
+        are found in a first pass, remembered by index (below 64) and placed again in the second.
+        ``walked`` is a compile-time flag: the regrid's ``cover`` does not compile the walk."""
         lin = ti.u32(0)
         for a in ti.static(range(self.dim)):
             lin = lin * ti.u32(self.region.padded[a]) + ti.u32(C[a] + 1)
@@ -243,13 +357,16 @@ class Sampler:
         if m > 0 and tilt_on and self.region.inside(C):
             tilt = self.tilt(e, C)
         c, low, clamped = m, ti.u64(0), 0  # appended; which of ghosts 0–63 enter; clamped axes
-        lead = -1
+        lead, n = -1, m  # the cell's lead face; the ghosts to walk: all, or those that cross it
         if ti.static(walked):
             c = 0
             if m > 0:
                 lead = self.lead(e, C)
-            for k in range(m):
-                _id, _y, keep, cl = self._placed(e, C, lin, k, step, birth, tilt, lead, walked)
+            if ti.static(self.direct):
+                if lead >= 0:
+                    n = self.crossing(m, lead, tilt, bits[1])
+            for k in range(n):
+                _id, _y, keep, cl = self._ghost(e, C, lin, k, step, birth, tilt, lead)
                 clamped += cl
                 if keep:
                     c += 1
@@ -261,9 +378,13 @@ class Sampler:
         base = pool.append(buf, U, c)
         ti.atomic_max(self.need[None], base + c)
         j = base
-        for k in range(m):
+        for k in range(n):
             if ti.static(not walked) or k >= 64 or (low >> ti.cast(k, ti.u64)) & ti.u64(1):
-                id0, y, keep, _ = self._placed(e, C, lin, k, step, birth, tilt, lead, walked)
+                id0, y, keep = ti.u32(0), ti.Vector.zero(self.real, self.dim), True
+                if ti.static(walked):
+                    id0, y, keep, _ = self._ghost(e, C, lin, k, step, birth, tilt, lead)
+                else:
+                    id0, y, keep, _ = self._placed(e, C, lin, k, step, birth, tilt, lead, 0)
                 if keep:
                     if j < pool.capacity:
                         I = pool.index(buf, U, j)
