@@ -27,6 +27,21 @@ def test_binomial_moments():
     assert np.isclose(b["variance"], 0.99) and np.isclose(b["skewness"], 0.98 / math.sqrt(0.99))
 
 
+def test_fixed_and_poisson_moments_match_the_convolved_pmf():
+    n, lam, p = 7, 2.5, 0.3
+    binom = theory.poisson_binomial_pmf(np.array([p]), np.array([n]))
+    k = np.arange(60)
+    poisson = np.exp(-lam * p + k * math.log(lam * p) - np.array([math.lgamma(j + 1) for j in k]))
+    pmf = np.convolve(binom, poisson)[:60]
+    mean = (k * pmf).sum()
+    c = k - mean
+    var = (c**2 * pmf).sum()
+    m = theory.fixed_and_poisson_moments(n, lam, p)
+    assert np.isclose(m["mean"], mean) and np.isclose(m["variance"], var)
+    assert np.isclose(m["skewness"], (c**3 * pmf).sum() / var**1.5)
+    assert np.isclose(m["kurtosis"], (c**4 * pmf).sum() / var**2)
+
+
 def _phi(z):
     return math.exp(-0.5 * z * z) / math.sqrt(2 * math.pi)
 

@@ -18,8 +18,17 @@ def _from_cumulants(k1, k2, k3, k4):
 
 def binomial_moments(n: int, p: float) -> dict[str, float]:
     """Moments of Binomial(n, p): the count in one of M cells holding N uniform particles (p = 1/M)."""
+    return fixed_and_poisson_moments(n, 0.0, p)
+
+
+def fixed_and_poisson_moments(n: float, lam: float, p: float) -> dict[str, float]:
+    """Moments of the count in a cell of share ``p`` when ``n`` particles are fixed in number and
+    ``Poisson(lam)`` more were drawn: Bin(n, p) + Poisson(lam p), independent (a Poisson count
+    thinned by ``p`` stays Poisson), so the cumulants add. The hybrid's total is of this kind:
+    the SPDE's content ``n`` is fixed, the particles sampled into the first region Poisson."""
     q = 1.0 - p
-    return _from_cumulants(n * p, n * p * q, n * p * q * (1 - 2 * p), n * p * q * (1 - 6 * p * q))
+    return _from_cumulants(n * p + lam * p, n * p * q + lam * p, n * p * q * (1 - 2 * p) + lam * p,
+                           n * p * q * (1 - 6 * p * q) + lam * p)
 
 
 def poisson_binomial_moments(p: np.ndarray, axis: int = 0) -> dict[str, np.ndarray]:
