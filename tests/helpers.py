@@ -1,4 +1,5 @@
 """Helpers shared by several test modules: count moments against exact ones, commands as a user runs them."""
+import math
 import os
 import subprocess
 import sys
@@ -17,6 +18,62 @@ def check_moments(counts_stats, exact, se, cells, z_max=5.0):
         z = (counts_stats[k][cells] - exact[k][cells]) / se[k][cells]
         assert np.all(np.abs(z) < z_max), (k, z.max(), z.min())
         assert abs(z.mean()) < z_max / np.sqrt(z.size) + 0.1, (k, z.mean())
+
+
+def trap_tails(method: str, members: int, t_end: float, cells: int = 40):
+    """Issue 28's check of the harmonic trap's tails: ``trap1d`` (Neumann, σ = 0.08, C = 1/16,
+    N = 400) with ``members`` members and one statistics row at ``t_end`` (one sample a member: the
+    samples are independent), the hybrid's region fixed (``regrid_interval = 0``) where the start
+    holds fewer than ``threshold`` particles per cell, plus the buffer. Returns the scene, the
+    covered cells, the content ``n`` the start fixes and the mean ``lam`` of the Poisson number of
+    particles it samples (the hybrid samples the covered cells; the particle method places
+    exactly N), and the walk's stationary shares (:func:`theory.trap_walk_shares`, U'' read off
+    the scene's potential by a central difference, exact for a quadratic)."""
+    from ti_dk import load_scene
+    from ti_dk.core import theory
+    from ti_dk.hybrid import regrid
+
+    scene = load_scene("trap1d", method=method, cells=[cells], ppc=400 / cells, t_end=t_end, ensemble=members,
+                       t_equil=None, output_times=[], regrid_interval=0)
+    covered = np.flatnonzero(regrid.region(scene.initial_ppc, scene.hybrid.regrid, (False,))[1])
+    lam = float(scene.initial_ppc[covered].sum()) if method == "hybrid" else 0.0
+    h, U = 1e-3, scene.potential
+    k = float((U(np.array(0.5 + h)) - 2 * U(np.array(0.5)) + U(np.array(0.5 - h))) / h**2)
+    shares = theory.trap_walk_shares(cells, 1.0, scene.dt, k, 0.5)
+    return scene, covered, float(scene.initial_ppc.sum()) - lam, lam, shares
+
+
+def tail_scores(mean, var, members, n, lam, shares, cells) -> list[dict]:
+    """Per cell of ``cells``: the ensemble's count mean and variance against the exact
+    Bin(n, p) + Poisson(lam p) of :func:`theory.fixed_and_poisson_moments` (p = ``shares[i]``).
+    Where the ensemble's expected total ``members · E[count]`` is at least 100 (its skewness at
+    most 0.1) as z-scores, SE(mean) = √(κ₂/M) and SE(s²) = √((μ₄ − κ₂²)/M); below, the normal
+    z means nothing, and the test is exact: the total over the members is Poisson (to relative
+    O(p)), ``p_value`` its two-sided tail probability. There the variance is not scored: all but
+    about ``M (E count)²/2 < 0.01`` members hold 0 or 1, so s² = mean (1 − mean) + O(1/M) repeats it."""
+    from ti_dk.core import theory
+
+    rows = []
+    for i in cells:
+        b = theory.fixed_and_poisson_moments(n, lam, float(shares[i]))
+        row = {"cell": int(i), "exact_mean": float(b["mean"]), "exact_variance": float(b["variance"]),
+               "z_mean": None, "z_var": None, "p_value": None}
+        if members * b["mean"] >= 100:
+            row["z_mean"] = (mean[i] - b["mean"]) / math.sqrt(b["variance"] / members)
+            row["z_var"] = (var[i] - b["variance"]) / math.sqrt((b["kurtosis"] - 1) * b["variance"] ** 2 / members)
+        else:
+            row["p_value"] = poisson_two_sided(members * b["mean"], round(mean[i] * members))
+        rows.append(row)
+    return rows
+
+
+def poisson_two_sided(mu: float, k: int) -> float:
+    """2 min(P(X ≤ k), P(X ≥ k)) for X ~ Poisson(mu), capped at 1."""
+    pmf = [math.exp(-mu)]
+    for j in range(1, k + 1):
+        pmf.append(pmf[-1] * mu / j)
+    below = sum(pmf)
+    return min(1.0, 2 * min(below, 1.0 - below + pmf[-1]))
 
 
 def as_counts(stats, row, vol):

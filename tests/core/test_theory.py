@@ -4,6 +4,7 @@ import math
 import numpy as np
 import pytest
 
+from ti_dk import load_scene
 from ti_dk.core import theory
 
 
@@ -24,6 +25,21 @@ def test_poisson_binomial_cumulants_match_pmf():
 def test_binomial_moments():
     b = theory.binomial_moments(100, 0.01)
     assert np.isclose(b["variance"], 0.99) and np.isclose(b["skewness"], 0.98 / math.sqrt(0.99))
+
+
+def test_fixed_and_poisson_moments_match_the_convolved_pmf():
+    n, lam, p = 7, 2.5, 0.3
+    binom = theory.poisson_binomial_pmf(np.array([p]), np.array([n]))
+    k = np.arange(60)
+    poisson = np.exp(-lam * p + k * math.log(lam * p) - np.array([math.lgamma(j + 1) for j in k]))
+    pmf = np.convolve(binom, poisson)[:60]
+    mean = (k * pmf).sum()
+    c = k - mean
+    var = (c**2 * pmf).sum()
+    m = theory.fixed_and_poisson_moments(n, lam, p)
+    assert np.isclose(m["mean"], mean) and np.isclose(m["variance"], var)
+    assert np.isclose(m["skewness"], (c**3 * pmf).sum() / var**1.5)
+    assert np.isclose(m["kurtosis"], (c**4 * pmf).sum() / var**2)
 
 
 def _phi(z):
@@ -191,3 +207,51 @@ def test_hybrid_mean_reduces_to_its_two_methods_and_conserves_mass():
         assert abs(h.sum() - ppc0.sum()) < 1e-9
     # uniform ghosts overfill the first covered cells and drain the ring (benchmarks/RESULTS.md)
     assert h[14] - exact[14] > 0.05 and h[13] - exact[13] < -0.05
+
+
+def _walk_law_numerically(cells, dt, k, m):
+    """Cell shares of the stationary law of the chain the particles run in the trap U = ½k(x − ½)²
+    on [0, 1] with Neumann walls: x ← reflect(x + clamp(−½U'(x)Δt + √Δt Z, ±Δx)), the drift inside
+    the clamp, the clamp's atoms at ±Δx. Nyström: the density π at the nodes x_j = jΔx/m obeys
+    π(y) = ∫ π(x) K(x, y) dx + the atoms (π(y ∓ Δx) P(clamp at ±Δx)), K the Gaussian part with its
+    reflected images; the trapezoid rule on the nodes (weight ½ where K jumps, at |y − x| = Δx:
+    error O(h²), removed by the caller's Richardson step), π by inverse iteration."""
+    dx, s = 1.0 / cells, math.sqrt(dt)
+    h, n = dx / m, cells * m
+    x = np.arange(n + 1) * h
+    w = np.full(n + 1, h)
+    w[[0, -1]] = h / 2
+    mu = -0.5 * k * (x - 0.5) * dt
+    A = np.zeros((n + 1, n + 1))  # A[j, i]: density at x_j from the node x_i
+    for y in (x, -x, 2.0 - x):  # the walls' images
+        d = y[:, None] - x[None, :]
+        inside = np.where(np.abs(np.abs(d) - dx) < 1e-9 * h, 0.5, (np.abs(d) < dx) * 1.0)
+        A += inside * w * np.exp(-0.5 * ((d - mu) / s) ** 2) / (s * math.sqrt(2 * math.pi))
+    erfc = np.vectorize(math.erfc)
+    for sign in (1, -1):  # the atoms: x_i → x_i ± Δx, reflected at the walls (node to node)
+        j = np.arange(n + 1) + sign * m
+        j = np.where(j < 0, -j, np.where(j > n, 2 * n - j, j))
+        np.add.at(A, (j, np.arange(n + 1)), 0.5 * erfc((dx - sign * mu) / (s * math.sqrt(2))))
+    pi = np.exp(-0.5 * k * (x - 0.5) ** 2)  # from e^{−U}: A's top eigenvalue is 1 − O(h²), the next
+    for _ in range(3):  # 1 − O(kΔt): each step of inverse iteration at 1 shrinks the error by ~1e-3
+        pi = np.linalg.solve(A - np.eye(n + 1), pi)
+        pi /= pi.sum()
+    shares = np.array([np.trapezoid(pi[c * m:(c + 1) * m + 1], dx=h) for c in range(cells)])
+    return shares / shares.sum()
+
+
+def test_the_trap_walk_law_is_the_clamped_chains_stationary_law():
+    """trap_walk_shares (AR(1), linear in the drift, no walls) against the full chain's stationary
+    law computed numerically (Richardson-extrapolated in the node spacing: two extrapolations
+    agree), in units of the standard error of a cell's mean count in the slow hybrid test of
+    tests/hybrid/test_solver.py (trap1d: N = 400, 10⁵ members). The Boltzmann shares differ by
+    more than an SE there: the walk's own law is what 10⁵ members can tell apart."""
+    cells, dt, k, N, M = 40, 0.0625 / 40**2, 1 / 0.08**2, 400, 100_000
+    law = {m: _walk_law_numerically(cells, dt, k, m) for m in (6, 8, 12, 16)}
+    exact, check = (4 * law[16] - law[8]) / 3, (4 * law[12] - law[6]) / 3
+    se = np.sqrt(N * exact * (1 - exact) / M)
+    assert np.abs(N * (check - exact) / se).max() < 3e-3
+    ar1 = theory.trap_walk_shares(cells, 1.0, dt, k, 0.5)
+    assert np.abs(N * (ar1 - exact) / se).max() < 5e-3
+    boltzmann = load_scene("trap1d").potential.boltzmann_weights((cells,), (1.0,))
+    assert np.abs(N * (boltzmann - exact) / se).max() > 1

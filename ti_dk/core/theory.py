@@ -18,8 +18,17 @@ def _from_cumulants(k1, k2, k3, k4):
 
 def binomial_moments(n: int, p: float) -> dict[str, float]:
     """Moments of Binomial(n, p): the count in one of M cells holding N uniform particles (p = 1/M)."""
+    return fixed_and_poisson_moments(n, 0.0, p)
+
+
+def fixed_and_poisson_moments(n: float, lam: float, p: float) -> dict[str, float]:
+    """Moments of the count in a cell of share ``p`` when ``n`` particles are fixed in number and
+    ``Poisson(lam)`` more were drawn: Bin(n, p) + Poisson(lam p), independent (a Poisson count
+    thinned by ``p`` stays Poisson), so the cumulants add. The hybrid's total is of this kind:
+    the SPDE's content ``n`` is fixed, the particles sampled into the first region Poisson."""
     q = 1.0 - p
-    return _from_cumulants(n * p, n * p * q, n * p * q * (1 - 2 * p), n * p * q * (1 - 6 * p * q))
+    return _from_cumulants(n * p + lam * p, n * p * q + lam * p, n * p * q * (1 - 2 * p) + lam * p,
+                           n * p * q * (1 - 6 * p * q) + lam * p)
 
 
 def poisson_binomial_moments(p: np.ndarray, axis: int = 0) -> dict[str, np.ndarray]:
@@ -49,6 +58,32 @@ def poisson_binomial_pmf(p: np.ndarray, repeats: np.ndarray | None = None) -> np
         binom = np.array([math.comb(r, int(i)) for i in k], dtype=np.float64) * pj**k * (1 - pj) ** (r - k)
         pmf = np.convolve(pmf, binom)
     return pmf
+
+
+def trap_walk_shares(cells: int, length: float, dt: float, curvature: float, centre: float) -> np.ndarray:
+    r"""Each cell's share of the stationary law of the particles' own walk in a harmonic trap
+    ``U = ½ k (x − x₀)²``: the exact equilibrium of the time-stepped, clamped Euler–Maruyama walk of
+    :class:`ti_dk.methods.particles.Walker`, which is not the Boltzmann ``e^{−U}`` of the SDE.
+
+    The step ``D = clamp(μ + √Δt Z, −Δx, Δx)``, ``μ = −½ k (x − x₀) Δt``, makes ``y = x − x₀`` an
+    AR(1) chain ``y ← a y + ε``: ``a = 1 − ½ kΔt (1 − P_c)``, the restoring drift weakened by the
+    clamp (``∂E[D]/∂μ = P(|√Δt Z| < Δx) = 1 − P_c``, ``P_c = erfc(c/√2)``, ``c = Δx/√Δt``), and
+    ``ε`` the clamped noise, of variance ``v = Δt (1 − P_c − 2cφ(c) + c² P_c)``. Its stationary law
+    has variance ``v/(1 − a²)``, wider than the Boltzmann ``1/k`` by about ``kΔt/4``, and is
+    Gaussian up to ``ε``'s higher cumulants, which enter damped by ``(1 − a²)^{n/2}/(1 − aⁿ)``.
+    Linear in ``μ`` (the clamp's asymmetry is ``O(μ³)``) and with the walls left out (the
+    shares are normalised on the domain): tests/core/test_theory.py checks both against the
+    stationary law of the full chain (clamp atoms, Neumann reflection) computed numerically.
+    """
+    c = (length / cells) / math.sqrt(dt)
+    p_c = math.erfc(c / math.sqrt(2))
+    a = 1.0 - 0.5 * curvature * dt * (1.0 - p_c)
+    v = dt * (1.0 - p_c - 2.0 * c * math.exp(-0.5 * c * c) / math.sqrt(2 * math.pi) + c * c * p_c)
+    z = (np.linspace(0.0, length, cells + 1) - centre) / math.sqrt(2.0 * v / (1.0 - a * a))
+    erfc = np.vectorize(math.erfc)
+    lower, upper = 0.5 * erfc(-z), 0.5 * erfc(z)  # P(Y < edge) and P(Y > edge), each accurate in its own tail
+    mass = np.where(z[1:] <= 0, lower[1:] - lower[:-1], upper[:-1] - upper[1:])
+    return mass / mass.sum()
 
 
 def clamped_step_cf(k: np.ndarray, dt: float, dx: float, nodes: int = 16) -> np.ndarray:
