@@ -146,17 +146,27 @@ class Sampler:
         return id0, y, keep, clamped
 
     @ti.func
+    def _store(self, pool: ti.template(), buf, U, j, id0, y, birth):
+        """Particle ``id0`` at ``y`` into slot ``j`` of unit ``U``, unless past the capacity (the
+        caller counts it in ``need``, grows the pool and samples again)."""
+        if j < pool.capacity:
+            I = pool.index(buf, U, j)
+            pool.x[I] = y
+            pool.pid[I] = ti.math.uvec2(id0, ti.u32(birth))
+
+    @ti.func
     def sample(self, pool: ti.template(), buf, e, C, lam, step, birth, tilt_on, walked: ti.template()):
         """Sample ℓ particles plus one with probability α (``lam = ℓ + α``) in cell ``C`` (paper §3),
         placed by :meth:`tilt` (uniform where ``tilt_on`` is 0), and append them to buffer ``buf``
         of member ``e`` (the pool's unit for that cell: :mod:`pool`); returns how many were sampled.
 
         With ``walked`` (the ghosts of a particle sub-step ``step``) only the ghosts whose walk ends
-        in the region are appended, in index order, already walked (the hybrid's walk does not
-        move them again): where the cell has a lead face and no potential, the
-        :meth:`Crossings.crossing` ones drawn by :meth:`Crossings.entering`, else each ghost walked by :meth:`_placed`. Those that enter
-        are found in a first pass, remembered by index (below 64) and placed again in the second.
-        ``walked`` is a compile-time flag: the regrid's ``cover`` does not compile the walk."""
+        in the region are appended, one slot each as found, already walked (the hybrid's walk does
+        not move them again): where the cell has a lead face and no potential, the
+        :meth:`Crossings.crossing` ones drawn by :meth:`Crossings.entering`, else each ghost walked
+        by :meth:`_placed`. (The slots' order is the threads'; a particle's numbers are keyed on
+        its identity, and :meth:`pools.occupied` sorts.) ``walked`` is a compile-time flag: the
+        regrid's ``cover`` does not compile the walk."""
         lin = ti.u32(0)
         for a in ti.static(range(self.dim)):
             lin = lin * ti.u32(self.region.padded[a]) + ti.u32(C[a] + 1)
@@ -169,37 +179,30 @@ class Sampler:
         tilt = ti.Vector.zero(self.real, self.dim)
         if m > 0 and tilt_on and self.region.inside(C):
             tilt = self.tilt(e, C)
-        c, low, clamped = m, ti.u64(0), 0  # appended; which of ghosts 0–63 enter; clamped axes
-        lead, n = -1, m  # the cell's lead face; the ghosts to walk: all, or those that cross it
+        U = pool.unit_of(e, C)
         if ti.static(walked):
-            c = 0
+            lead, n, clamped, top = -1, m, 0, 0  # lead face; ghosts to walk (all, or the crossings); clamped; slots used
             if m > 0:
                 lead = self.crossings.lead(e, C)
             if ti.static(self.crossings.direct):
                 if lead >= 0:
                     n = self.crossings.crossing(m, lead, tilt, bits[1])
             for k in range(n):
-                _id, _y, keep, cl = self._placed(e, C, lin, k, step, birth, tilt, lead, walked)
-                clamped += cl
+                id0, y, keep, cl = self._placed(e, C, lin, k, step, birth, tilt, lead, walked)
                 if keep:
-                    c += 1
-                    if k < 64:
-                        low |= ti.u64(1) << ti.cast(k, ti.u64)
+                    clamped += cl
+                    j = pool.append(buf, U, 1)
+                    top = ti.max(top, j + 1)
+                    self._store(pool, buf, U, j, id0, y, birth)
+            ti.atomic_max(self.need[None], top)
             if clamped:
                 self.clamped[None] += clamped
-        U = pool.unit_of(e, C)
-        base = pool.append(buf, U, c)
-        ti.atomic_max(self.need[None], base + c)
-        j = base
-        for k in range(n):
-            if ti.static(not walked) or k >= 64 or (low >> ti.cast(k, ti.u64)) & ti.u64(1):
-                id0, y, keep, _ = self._placed(e, C, lin, k, step, birth, tilt, lead, walked)
-                if keep:
-                    if j < pool.capacity:
-                        I = pool.index(buf, U, j)
-                        pool.x[I] = y
-                        pool.pid[I] = ti.math.uvec2(id0, ti.u32(birth))
-                    j += 1
+        else:
+            base = pool.append(buf, U, m)
+            ti.atomic_max(self.need[None], base + m)
+            for k in range(m):
+                id0, y, _keep, _cl = self._placed(e, C, lin, k, step, birth, tilt, -1, walked)
+                self._store(pool, buf, U, base + k, id0, y, birth)
         return m
 
     # -- kernels --------------------------------------------------------------------------
