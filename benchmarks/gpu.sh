@@ -30,6 +30,14 @@ trap 'rm -rf "$tmp"' EXIT
   echo
   $PY benchmarks/bench_hybrid.py --arch cuda 2>&1 | grep -v '^\[Taichi\]'
   echo
+  echo "## hybrid_value.py --arch cuda (issue 26: hybrid ÷ (fv + plain walk), particle ÷ hybrid)"
+  echo
+  $PY benchmarks/hybrid_value.py ellipse2d --arch cuda --steps 300 2>&1 | grep -v '^\[Taichi\]'
+  echo
+  $PY benchmarks/hybrid_value.py sphere3d --set 'cells=[64,64,64]' --arch cuda --steps 50 2>&1 | grep -v '^\[Taichi\]'
+  echo
+  $PY benchmarks/hybrid_value.py sphere3d --set 'cells=[128,128,128]' --arch cuda --steps 20 2>&1 | grep -v '^\[Taichi\]'
+  echo
   echo "## The scenes (python -m ti_dk.scene NAME --arch cuda)"
   echo
   echo "| scene | wall s | max RSS KB | exit |"

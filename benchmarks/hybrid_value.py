@@ -96,12 +96,13 @@ def main():
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
     p.add_argument("--steps", type=int, default=300)
     p.add_argument("--threads", type=int, default=2)
+    p.add_argument("--arch", default="cpu", choices=["cpu", "cuda"], help="Taichi backend (benchmarks/gpu.sh: cuda)")
     args = p.parse_args()
     over = {k.strip(): parse_value(v.strip(), k.strip()) for k, _, v in (item.partition("=") for item in args.set)}
     over["compare"] = "none"
     init = ti.init
     ti.init = lambda *a, **kw: init(*a, **{**kw, "kernel_profiler": True})
-    ti_dk.init("cpu", args.threads)
+    ti_dk.init(args.arch, args.threads)
     names = ("hybrid", "fv", "particle")
     scenes = {m: load_scene(args.scene, **over, method=m) for m in names}
     solvers, first = {}, {}
@@ -125,7 +126,7 @@ def report(args, ms, kernels, mean_n, n_walk, solvers, first, t_first) -> None:
     n_particle = solvers["particle"].diagnostics()["mass"]
     walk_ms = ms["walk"] * mean_n / n_walk  # per particle, at the hybrid's mean count
     print(f"# {args.scene} {' '.join(args.set)}: {time.strftime('%Y-%m-%d %H:%M')}, {cpu_model()}, "
-          f"{args.threads} threads, steps 1-{steps} (step 0 apart), load average {os.getloadavg()[0]:.1f}\n")
+          f"{args.arch}, {args.threads} threads, steps 1-{steps} (step 0 apart), load average {os.getloadavg()[0]:.1f}\n")
     print("| | ms/step |\n|---|---|")
     print(f"| hybrid | {ms['hybrid']:.2f} |")
     for k, v in solvers["hybrid"].timing.items():
