@@ -21,11 +21,6 @@ def _reach(sigma: float) -> tuple[float, float, float]:
     return sigma, sigma * (phi0 - phia) + tail, sigma**2 * (0.5 - tail - a * phia) + tail
 
 
-def _offset(i: int, a: int) -> int:
-    """Component ``a`` of the ``i``-th neighbour offset ``δ ∈ {−1, 0, 1}^d`` (base-3 digits of ``i``)."""
-    return (i // 3**a) % 3 - 1
-
-
 @ti.data_oriented
 class Crossings:
     """The walk of a ghost cell's ghosts into the region (ti.funcs for :class:`ghosts.Sampler`).
@@ -87,12 +82,14 @@ class Crossings:
         total = 0
         lo = ti.Vector.zero(ti.i32, self.dim)
         hi = ti.Vector.zero(ti.i32, self.dim)
-        for i in ti.static(range(3**self.dim)):
-            if ti.static(i != (3**self.dim - 1) // 2):  # δ = 0: the cell itself
-                D = ti.Vector.zero(ti.i32, self.dim)
-                ok = True
+        for I in ti.grouped(ti.ndrange(*([3] * self.dim))):  # a loop, not unrolled: less code for the JIT to load
+            off = I - 1  # δ
+            moved = False
+            for a in ti.static(range(self.dim)):
+                moved = moved or off[a] != 0
+            if moved:
+                D, ok = C + off, True
                 for a in ti.static(range(self.dim)):
-                    D[a] = C[a] + ti.static(_offset(i, a))
                     if ti.static(self.grid.boundary[a][0] == PERIODIC):
                         D[a] = (D[a] + self.n[a]) % self.n[a]
                     ok = ok and 0 <= D[a] < self.n[a]
@@ -100,10 +97,8 @@ class Crossings:
                     if self.region.covered[self.region.member(e, D)] != 0:
                         total += 1
                         for a in ti.static(range(self.dim)):
-                            if ti.static(_offset(i, a) < 0):
-                                lo[a] += 1
-                            if ti.static(_offset(i, a) > 0):
-                                hi[a] += 1
+                            lo[a] += ti.cast(off[a] < 0, ti.i32)
+                            hi[a] += ti.cast(off[a] > 0, ti.i32)
         out = -1
         for b in ti.static(range(self.dim)):
             a = ti.static(self.dim - 1 - b)  # the last assignment wins: the first axis
