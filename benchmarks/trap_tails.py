@@ -28,19 +28,12 @@ from ti_dk.hybrid import regrid
 
 
 def walk_shares(scene, cells: int) -> np.ndarray:
-    """Each cell's share of the Euler–Maruyama walk's own stationary law in the harmonic trap: with
-    U'' = k the step x − ½ ← a (x − ½) + √Δt Z, a = 1 − kΔt/2, is AR(1) with variance Δt/(1 − a²),
-    a little wider than the Boltzmann 1/k (relative excess ≈ kΔt/4); the walls (6σ away) and the
-    clamp at ±Δx (a 4.5-standard-deviation step) are left out."""
+    """Each cell's share of the Euler–Maruyama walk's own stationary law in the trap
+    (:func:`theory.harmonic_walk_shares`, U'' by central differences)."""
     h = 1e-4
     k = float((scene.potential(np.array(0.5 + h)) - 2 * scene.potential(np.array(0.5))
                + scene.potential(np.array(0.5 - h))) / h**2)
-    a = 1 - k * scene.dt / 2
-    s = math.sqrt(scene.dt / (1 - a * a))
-    z = (np.linspace(0, 1, cells + 1) - 0.5) / (s * math.sqrt(2))
-    mass = np.array([0.5 * (math.erfc(lo) - math.erfc(hi)) if lo >= 0 else 0.5 * (math.erfc(-hi) - math.erfc(-lo))
-                     for lo, hi in zip(z[:-1], z[1:])])
-    return mass / mass.sum()
+    return theory.harmonic_walk_shares(k, scene.dt, cells)
 
 
 def z_scores(N: int, p: float, M: int, mean: float, var: float) -> tuple[dict, float, float]:

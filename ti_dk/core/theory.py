@@ -346,3 +346,19 @@ def hybrid_mean_1d(ppc0: np.ndarray, region: np.ndarray, dt: float, steps: int, 
         Q, qbar = Qs + dN, fv(qbar)
         Q[cov] = f.reshape(M, sub).sum(axis=1)[cov]
     return Q
+
+
+def harmonic_walk_shares(stiffness: float, dt: float, cells: int, centre: float = 0.5,
+                         length: float = 1.0) -> np.ndarray:
+    """Each cell's share of the Euler–Maruyama walk's own stationary law in the harmonic trap
+    U = ½ k (x − centre)² (``stiffness`` k = U''): the step x − c ← a (x − c) + √Δt Z,
+    a = 1 − kΔt/2, is AR(1) with variance Δt/(1 − a²), a little wider than the Boltzmann 1/k
+    (relative excess ≈ kΔt/4). Walls and the clamp at ±Δx are left out (both far away: the
+    caller's trap lies well inside the domain and its steps well below a cell)."""
+    a = 1 - stiffness * dt / 2
+    s = math.sqrt(dt / (1 - a * a))
+    z = (np.linspace(0, length, cells + 1) - centre) / (s * math.sqrt(2))
+    mass = np.array([0.5 * (math.erfc(lo) - math.erfc(hi)) if lo >= 0 else 0.5 * (math.erfc(-hi) - math.erfc(-lo))
+                     for lo, hi in zip(z[:-1], z[1:])])
+    return mass / mass.sum()
+
