@@ -120,7 +120,7 @@ def test_a_steep_curved_trap_keeps_the_walks_stationary_law_in_the_region():
     U''Δx² = 0.7 k_BT across the cells at the region's edge. Ghosts laid on an exponential with
     the centred slope of ln q̄ misjudge the density at the face they enter by about
     (ln q)''Δx²/12, and the covered cells held 6 % more than the walk's stationary law (z ≈ +19
-    at this size); laid along e^{−U} within the cell (Sampler.place) they hold it. Members are
+    at this size); laid along e^{−U} within the cell (InCell.place) they hold it. Members are
     independent: each one's time average of the region's count, sampled every 8 steps after the
     first 200 (the start is the cell-averaged Boltzmann state), gives the standard error."""
     sigma, n = 0.03, 40

@@ -3,12 +3,12 @@
 
 import math
 
-import numpy as np
 import taichi as ti
 
 from ..core import rng
-from ..core.grid import DIRICHLET, across, cell_of
+from ..core.grid import cell_of
 from ..methods.particles import Walker
+from .incell import InCell
 from .region import Region
 
 ID_BITS_MIN = 8  # hybrid particle ids: birth cell in the high bits, at least this many for the index in the cell
@@ -18,7 +18,6 @@ ID_BITS_MIN = 8  # hybrid particle ids: birth cell in the high bits, at least th
 HYBRID_STEP_LIMIT = 1 << (32 - rng.PURPOSE_BITS - 1)
 REGRID_BIRTH = HYBRID_STEP_LIMIT  # flag in the birth word of particles sampled at a regrid (ghosts: step + 1)
 TOO_MANY = 2**31 - 1  # `need` when a cell asked for more particles than an id can number
-PROFILE_PIECES = 4  # with a potential: pieces per cell and axis of the in-cell Boltzmann profile (Sampler.place)
 
 
 @ti.data_oriented
@@ -29,31 +28,22 @@ class Sampler:
     Cell ``C`` (padded index ``C + 1``, flattened to ``lin``) gets ``ℓ`` particles plus one with
     probability ``α``, ``ℓ + α = max(λ, 0)`` (paper §3), λ its expected content; particle ``k``
     gets the identity ``id0 = lin · 2^id_bits + k`` and a birth word (``step + 1`` for ghosts,
-    ``step | REGRID_BIRTH`` at a regrid), and is placed by :meth:`place` with the profile of
-    :meth:`tilt` (with a potential along e^{−U} within the cell: :attr:`nodes`, ``dim ×
-    (PROFILE_PIECES + 1)`` numbers a cell, made once).
+    ``step | REGRID_BIRTH`` at a regrid), and is placed by :meth:`InCell.place` with the profile of
+    :meth:`InCell.tilt`.
     """
 
     def __init__(self, spde, region: Region, walker: Walker, profile: str, substeps: int):
-        self.spde, self.region, self.walker, self.profile, self.substeps = spde, region, walker, profile, substeps
+        self.spde, self.region, self.walker, self.substeps = spde, region, walker, substeps
         self.grid, self.dim, self.n, self.real = spde.grid, spde.dim, spde.n, spde.real
         self.key = spde.key  # the run's Philox key; sampling has counters of its own (rng.SAMPLE_*)
         self.id_bits = 32 - math.ceil(math.log2(math.prod(region.padded)))  # bits for the index in the cell
         assert self.id_bits >= ID_BITS_MIN, "scene.load.make_scene refuses such grids"
-        assert profile != "mean" or spde.track_mean, "ghost_profile 'mean' reads the SPDE's q̄"
         if substeps > 1:
             self.q_old = ti.field(spde.real, shape=(spde.ensemble, *self.n))  # q^n while q holds q^{n+1,*} [1/volume]
         self.need = ti.field(ti.i32, shape=())  # most slots a member asked for (TOO_MANY: a cell overflowed)
         self.clamped = ti.field(ti.i64, shape=())  # axis steps clamped in the ghosts' walk of the last fill
         self.created = ti.field(ti.i64, shape=())  # particles sampled at the last regrid
-        self.shaped = walker.drifting and profile != "uniform"  # placed along e^{-U} within the cell (place)
-        if self.shaped:
-            # per cell and axis: −ln of e^{−U}'s marginal at the PROFILE_PIECES + 1 points from the lower
-            # face to the upper one, less the cell's Ū [k_BT] (Potential.axis_profiles)
-            self.nodes = ti.Matrix.field(self.dim, PROFILE_PIECES + 1, spde.real, shape=self.n)
-            nodes = spde.grid.potential.axis_profiles(self.n, spde.grid.lengths, PROFILE_PIECES)
-            nodes = np.clip(np.nan_to_num(nodes, nan=0.0, posinf=500.0, neginf=-500.0), -500.0, 500.0)  # (e^{−500}: none)
-            self.nodes.from_numpy(nodes.astype(np.float32 if spde.real == ti.f32 else np.float64))
+        self.incell = InCell(spde, region, walker, profile)  # where in its cell a sampled particle lies
 
     def check_need(self) -> int:
         """The most slots a member asked for in the last fill; raises if a cell overflowed its ids."""
@@ -83,110 +73,6 @@ class Sampler:
 
     # -- placement ------------------------------------------------------------------------
     @ti.func
-    def _profile(self, J):
-        """The density the tilts are read from at member-first index ``J``: q̄ (``mean``) or q."""
-        v = self.real(0.0)
-        if ti.static(self.profile == "mean"):
-            J0 = J
-            J0[0] = 0
-            v = self.spde.qbar[J0]
-        else:
-            v = self.spde.q[J]
-        return v
-
-    @ti.func
-    def tilt(self, e, C):
-        r"""Linear profile of cell ``C`` for :meth:`Walker.in_cell`: ``b_a = (p_{C+e_a} − p_{C−e_a}) / (2 p_C)``
-        clipped to [−2, 2] so the density stays ≥ 0: the centred slope of the profile density ``p``
-        (the neighbours :func:`grid.across` each face: a Neumann side mirrors, a Dirichlet side
-        sees its reservoir). Zero with ``ghost_profile = 'uniform'``.
-
-        Which ``p`` (``ghost_profile``), measured on the paper's void case (benchmarks/RESULTS.md):
-
-        - ``uniform`` (paper §3): ``b = 0``. Near a density gradient the particles of a ghost cell do
-          not lie uniformly; uniform placement puts too many next to the low side and biases the
-          mean of the cells on both sides of the interface (6–12 standard errors).
-        - ``linear``: ``p = q`` of the member. The slope of a ghost cell next to the region reads the
-          covered neighbour's particle count, so the inflow grows with the region's own
-          fluctuation: positive feedback, variance of the first covered cells 8 % too high.
-        - ``mean`` (default): ``p = q̄``, the deterministic scheme (eq. 10) advanced alongside, the
-          same for every member: the profile of the ensemble mean, with no feedback from any
-          member's fluctuation. The count still comes from the member's own ``q``.
-
-        With an external potential the tilt is that of the Slotboom variable ``g = p e^{Ū}`` (the
-        density the Scharfetter–Gummel flux differences, :func:`~ti_dk.methods.fluxes.drift_coefficients`),
-        exponential: ``γ_a = (ln g_{C−e_a} − ln g_{C+e_a}) / 2`` clipped to [−50, 50], read as
-        ``ln p`` less the Ū differences across both faces (``c_R − c_L`` of the faces' weights);
-        :meth:`place` lays it over e^{−U} within the cell. At equilibrium ``g`` is flat, γ = 0,
-        and the particles lie as e^{−U} does in the cell; with a current through it, ``g`` carries
-        the current's slope. (An exponential profile with the centred slope of ``ln p`` alone
-        ignores U's curvature within the cell: where U changes by more than ≈ 1 k_BT a cell it
-        misjudges the density at the faces, by ≈ (ln p)''Δx²/12, and with it the ghosts' inflow;
-        benchmarks/RESULTS.md, the double well's crossing rate.)
-        """
-        b = ti.Vector.zero(self.real, self.dim)
-        if ti.static(self.profile != "uniform"):
-            J = self.region.member(e, C)
-            qc = self._profile(J)
-            for a in ti.static(range(self.dim)):
-                q = ti.Vector([qc, qc])  # beyond a Neumann side: the mirror image
-                for side in ti.static(range(2)):
-                    K, inside = across(self.grid, J, a, side)
-                    if inside:
-                        q[side] = self._profile(K)
-                    elif ti.static(self.grid.boundary[a][side] == DIRICHLET):
-                        q[side] = self.real(self.grid.reservoir[a][side])
-                if ti.static(self.walker.drifting):
-                    tiny = ti.static(1e-300 if self.real == ti.f64 else 1e-30)
-                    lo, hi = ti.log(ti.max(q[0], self.real(tiny))), ti.log(ti.max(q[1], self.real(tiny)))
-                    J0 = J
-                    J0[0] = 0
-                    c_lo, c_hi = self.spde.coef[J0], self.spde.coef[self.spde.upper(J0, a)]
-                    rise = c_lo[2 * a + 1] - c_lo[2 * a] + c_hi[2 * a + 1] - c_hi[2 * a]  # Ū_{C+e_a} − Ū_{C−e_a}
-                    b[a] = ti.math.clamp(self.real(0.5) * (lo - hi - rise), self.real(-50.0), self.real(50.0))
-                elif qc > 0:
-                    b[a] = ti.math.clamp((q[1] - q[0]) / (self.real(2.0) * qc), self.real(-2.0), self.real(2.0))
-        return b
-
-    @ti.func
-    def place(self, C, bits, tilt, shaped):
-        r"""A position in cell ``C`` from the words ``bits`` (one per axis): :meth:`Walker.in_cell`'s
-        linear profile with ``tilt``, or with a potential and ``shaped`` (a grid cell whose tilt
-        was read) along each axis the density ``∝ exp(−V_a(u) − γ_a u)``, ``γ = tilt``, ``V_a``
-        the piecewise-linear interpolation of :attr:`nodes` (:data:`PROFILE_PIECES` pieces), drawn
-        by inverting its CDF: the piece by its share of the mass, then the truncated exponential
-        within it (one uniform per axis)."""
-        y = ti.Vector.zero(self.real, self.dim)
-        if ti.static(self.shaped):
-            if shaped:
-                P = ti.static(PROFILE_PIECES)
-                V = self.nodes[C]
-                for a in ti.static(range(self.dim)):
-                    E = ti.Vector([V[a, k] + tilt[a] * self.real(k / P) for k in ti.static(range(P + 1))])
-                    w = ti.exp(E.min() - E)  # e^{−E} at the points, the largest 1
-                    m = ti.Vector.zero(self.real, P)  # each piece's mass (times P)
-                    for k in ti.static(range(P)):
-                        d = E[k + 1] - E[k]
-                        m[k] = ti.select(ti.abs(d) < 1e-6, w[k], (w[k] - w[k + 1]) / ti.select(d == 0, self.real(1.0), d))
-                    r = rng.uniform(bits[a], self.real) * m.sum()
-                    piece, below, cum, mass, d = 0, self.real(0.0), self.real(0.0), m[0], E[1] - E[0]
-                    for k in ti.static(range(1, P)):  # the piece in which the cumulative mass passes r
-                        cum += m[k - 1]
-                        if r >= cum:
-                            piece, below, mass, d = k, cum, m[k], E[k + 1] - E[k]
-                    s = ti.math.clamp((r - below) / mass, self.real(0.0), self.real(1.0))
-                    t = s - self.real(0.5) * d * s * (self.real(1.0) - s)
-                    if ti.abs(d) > 1e-4:
-                        t = -ti.log(self.real(1.0) - s * (self.real(1.0) - ti.exp(-d))) / d
-                    u = ti.min((piece + t) / P, self.real(1.0 - 2.0**-24))  # inside the cell whatever the rounding
-                    y[a] = (self.real(C[a]) + u) * self.real(self.grid.dx[a])
-            else:
-                y = self.walker.in_cell(C, bits, tilt)
-        else:
-            y = self.walker.in_cell(C, bits, tilt)
-        return y
-
-    @ti.func
     def _placed(self, e, C, lin, k, step, birth, tilt, shaped, walked: ti.template()):
         """Particle ``k`` of cell ``C`` (``lin``: its padded flat index): its identity word, its
         position, whether it is kept and how many of its axis steps were clamped. With ``walked``
@@ -195,7 +81,7 @@ class Sampler:
         key = ti.math.uvec2(self.key[0], self.key[1])
         id0 = (lin << ti.u32(self.id_bits)) | ti.u32(k)
         r = rng.philox4x32(ti.math.uvec4(id0, ti.u32(step), self.walker.member(e), ti.u32(rng.SAMPLE_POSITION)), key)
-        y = self.place(C, r, tilt, shaped)
+        y = self.incell.place(C, r, tilt, shaped)
         keep, clamped = True, 0
         if ti.static(walked):
             z, alive, c = self.walker.move(y, e, id0, ti.u32(birth), ti.u32(step))
@@ -208,7 +94,7 @@ class Sampler:
     @ti.func
     def sample(self, pool: ti.template(), buf, e, C, lam, step, birth, tilt_on, walked: ti.template()):
         """Sample ℓ particles plus one with probability α (``lam = ℓ + α``) in cell ``C`` (paper §3),
-        placed by :meth:`tilt` (uniform where ``tilt_on`` is 0), and append them to buffer ``buf``
+        placed by :meth:`InCell.tilt` (uniform where ``tilt_on`` is 0), and append them to buffer ``buf``
         of member ``e`` (the pool's unit for that cell: :mod:`pool`); returns how many were sampled.
 
         With ``walked`` (the ghosts of a particle sub-step ``step``) each is walked at once
@@ -231,7 +117,7 @@ class Sampler:
             m = 0
         tilt, shaped = ti.Vector.zero(self.real, self.dim), False
         if m > 0 and tilt_on and self.region.inside(C):
-            tilt, shaped = self.tilt(e, C), True
+            tilt, shaped = self.incell.tilt(e, C), True
         c, low, clamped = m, ti.u64(0), 0  # appended; which of ghosts 0–63 enter; clamped axes
         if ti.static(walked):
             c = 0

@@ -181,7 +181,7 @@ class Walker:
         ``b = tilt[a] ∈ [−2, 2]`` (0: uniform, as in paper §3), drawn by inverting its CDF
         ``u + b (u² − u)/2 = r`` in the cancellation-free form ``u = 2r / (c + √(c² + 2br))``,
         ``c = 1 − b/2``. (With a potential the hybrid lays its particles along e^{−U} instead:
-        :meth:`ti_dk.hybrid.ghosts.Sampler.place`.)
+        :meth:`ti_dk.hybrid.incell.InCell.place`.)
         """
         y = ti.Vector.zero(self.real, self.dim)
         for a in ti.static(range(self.dim)):
