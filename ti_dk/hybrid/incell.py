@@ -128,7 +128,7 @@ class InCell:
                     t = s - self.real(0.5) * d * s * (self.real(1.0) - s)
                     if ti.abs(d) > 1e-4:
                         t = -ti.log(self.real(1.0) - s * (self.real(1.0) - ti.exp(-d))) / d
-                    u = ti.min((piece + t) / P, self.real(1.0 - 2.0**-24))  # inside the cell whatever the rounding
+                    u = ti.min((self.real(piece) + t) * self.real(1.0 / P), self.real(1.0 - 2.0**-24))  # inside the cell
                     y[a] = (self.real(C[a]) + u) * self.real(self.grid.dx[a])
             else:
                 y = self.walker.in_cell(C, bits, tilt)
