@@ -341,7 +341,7 @@ def hybrid_mean_1d(ppc0: np.ndarray, region: np.ndarray, dt: float, steps: int, 
     Every part of a hybrid step is linear in expectation, so the mean follows one deterministic
     pass of the step: the FV mean ``Q`` of eq. (9) without noise (E Z = 0) outside the region; the
     region's particles as a density on ``sub`` sub-bins per cell, moved by the exact clamped step;
-    ghosts of each ring cell ``c``: ``Q_c`` particles on the profile :meth:`ti_dk.hybrid.ghosts.Sampler.tilt`
+    ghosts of each ring cell ``c``: ``Q_c`` particles on the profile :meth:`ti_dk.hybrid.incell.InCell.tilt`
     gives (``mean``: slope of q̄ = the same FV mean run from the start on the whole grid; uniform
     at the first step or with ``uniform``); S1 drops the FV fluxes across ring–region faces, the
     covered cells take the expected counts, ring cells gain ΔN (eq. 12). Exact while ghost cells

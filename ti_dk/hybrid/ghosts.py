@@ -6,9 +6,10 @@ import math
 import taichi as ti
 
 from ..core import rng
-from ..core.grid import DIRICHLET, across, cell_of
+from ..core.grid import cell_of
 from ..methods.particles import Walker
 from .crossings import Crossings
+from .incell import InCell
 from .region import Region
 
 ID_BITS_MIN = 8  # hybrid particle ids: birth cell in the high bits, at least this many for the index in the cell
@@ -28,23 +29,23 @@ class Sampler:
     Cell ``C`` (padded index ``C + 1``, flattened to ``lin``) gets ``ℓ`` particles plus one with
     probability ``α``, ``ℓ + α = max(λ, 0)`` (paper §3), λ its expected content; particle ``k``
     gets the identity ``id0 = lin · 2^id_bits + k`` and a birth word (``step + 1`` for ghosts,
-    ``step | REGRID_BIRTH`` at a regrid), and is placed by :meth:`Walker.in_cell` with the
-    linear profile of :meth:`tilt`.
+    ``step | REGRID_BIRTH`` at a regrid), and is placed by :meth:`InCell.place` with the profile of
+    :meth:`InCell.tilt`.
     """
 
     def __init__(self, spde, region: Region, walker: Walker, profile: str, substeps: int):
-        self.spde, self.region, self.walker, self.profile, self.substeps = spde, region, walker, profile, substeps
+        self.spde, self.region, self.walker, self.substeps = spde, region, walker, substeps
         self.grid, self.dim, self.n, self.real = spde.grid, spde.dim, spde.n, spde.real
         self.key = spde.key  # the run's Philox key; sampling has counters of its own (rng.SAMPLE_*)
         self.id_bits = 32 - math.ceil(math.log2(math.prod(region.padded)))  # bits for the index in the cell
         assert self.id_bits >= ID_BITS_MIN, "scene.load.make_scene refuses such grids"
-        assert profile != "mean" or spde.track_mean, "ghost_profile 'mean' reads the SPDE's q̄"
         if substeps > 1:
             self.q_old = ti.field(spde.real, shape=(spde.ensemble, *self.n))  # q^n while q holds q^{n+1,*} [1/volume]
         self.crossings = Crossings(self.grid, region, walker, self.key)  # the ghosts' walk into the region
         self.need = ti.field(ti.i32, shape=())  # most slots a member asked for (TOO_MANY: a cell overflowed)
         self.clamped = ti.field(ti.i64, shape=())  # axis steps clamped in the ghosts' walk of the last fill
         self.created = ti.field(ti.i64, shape=())  # particles sampled at the last regrid
+        self.incell = InCell(spde, region, walker, profile)  # where in its cell a sampled particle lies
 
     def check_need(self) -> int:
         """The most slots a member asked for in the last fill; raises if a cell overflowed its ids."""
@@ -74,60 +75,9 @@ class Sampler:
 
     # -- placement ------------------------------------------------------------------------
     @ti.func
-    def _profile(self, J):
-        """The density the tilts are read from at member-first index ``J``: q̄ (``mean``) or q."""
-        v = self.real(0.0)
-        if ti.static(self.profile == "mean"):
-            J0 = J
-            J0[0] = 0
-            v = self.spde.qbar[J0]
-        else:
-            v = self.spde.q[J]
-        return v
-
-    @ti.func
-    def tilt(self, e, C):
-        r"""Linear profile of cell ``C`` for :meth:`Walker.in_cell`: ``b_a = (p_{C+e_a} − p_{C−e_a}) / (2 p_C)``
-        clipped to [−2, 2] so the density stays ≥ 0: the centred slope of the profile density ``p``
-        (the neighbours :func:`grid.across` each face: a Neumann side mirrors, a Dirichlet side
-        sees its reservoir). Zero with ``ghost_profile = 'uniform'``.
-
-        Which ``p`` (``ghost_profile``; measured on the paper's void case in benchmarks/RESULTS.md):
-        ``uniform`` (paper §3, ``b = 0``) puts too many particles next to the low side of a gradient
-        and biases the means at the interface; ``linear`` (``p = q`` of the member) reads the covered
-        neighbour's count, so the inflow follows the region's own fluctuation (the first covered
-        cells' variance too high); ``mean`` (default, ``p = q̄`` of eq. 10, the same for every
-        member) has no such feedback. The count still comes from the member's own ``q``.
-
-        With an external potential the profile is exponential (:meth:`Walker.in_cell`), its rate
-        the centred slope of ``ln p``, ``β_a = (ln p_{C−e_a} − ln p_{C+e_a}) / 2`` clipped to
-        [−50, 50]: at equilibrium ``p ∝ e^{−Ū}`` and β is the potential's rise across the cell, so
-        the ghosts lie as e^{−U} does within the cell (exactly, for U linear there).
-        """
-        b = ti.Vector.zero(self.real, self.dim)
-        if ti.static(self.profile != "uniform"):
-            J = self.region.member(e, C)
-            qc = self._profile(J)
-            for a in ti.static(range(self.dim)):
-                q = ti.Vector([qc, qc])  # beyond a Neumann side: the mirror image
-                for side in ti.static(range(2)):
-                    K, inside = across(self.grid, J, a, side)
-                    if inside:
-                        q[side] = self._profile(K)
-                    elif ti.static(self.grid.boundary[a][side] == DIRICHLET):
-                        q[side] = self.real(self.grid.reservoir[a][side])
-                if ti.static(self.walker.drifting):
-                    tiny = ti.static(1e-300 if self.real == ti.f64 else 1e-30)
-                    lo, hi = ti.log(ti.max(q[0], self.real(tiny))), ti.log(ti.max(q[1], self.real(tiny)))
-                    b[a] = ti.math.clamp(self.real(0.5) * (lo - hi), self.real(-50.0), self.real(50.0))
-                elif qc > 0:
-                    b[a] = ti.math.clamp((q[1] - q[0]) / (self.real(2.0) * qc), self.real(-2.0), self.real(2.0))
-        return b
-
-    @ti.func
-    def _placed(self, e, C, lin, k, step, birth, tilt, lead, walked: ti.template()):
+    def _placed(self, e, C, lin, k, step, birth, tilt, shaped, lead, walked: ti.template()):
         """Particle ``k`` of cell ``C`` (``lin``: its padded flat index): identity, position, kept,
-        clamped steps. With ``walked`` (a ghost) kept only if its walk ends in the region: the
+        clamped steps; placed by :meth:`InCell.place`. With ``walked`` (a ghost) kept only if its walk ends in the region: the
         ``k``-th crossing of the ``lead`` face (:meth:`Crossings.entering`) where there is one and
         no potential drifts, else placed and walked (:meth:`Crossings.walk`)."""
         key = ti.math.uvec2(self.key[0], self.key[1])
@@ -140,7 +90,7 @@ class Sampler:
             y, keep, clamped = self.crossings.entering(e, C, id0, step, birth, tilt, lead)
         else:
             r = rng.philox4x32(ti.math.uvec4(id0, ti.u32(step), self.walker.member(e), ti.u32(rng.SAMPLE_POSITION)), key)
-            y = self.walker.in_cell(C, r, tilt)
+            y = self.incell.place(C, r, tilt, shaped)
             if ti.static(walked):
                 y, keep, clamped = self.crossings.walk(e, C, id0, y, step, birth, lead)
         return id0, y, keep, clamped
@@ -157,7 +107,7 @@ class Sampler:
     @ti.func
     def sample(self, pool: ti.template(), buf, e, C, lam, step, birth, tilt_on, walked: ti.template()):
         """Sample ℓ particles plus one with probability α (``lam = ℓ + α``) in cell ``C`` (paper §3),
-        placed by :meth:`tilt` (uniform where ``tilt_on`` is 0), and append them to buffer ``buf``
+        placed by :meth:`InCell.tilt` (uniform where ``tilt_on`` is 0), and append them to buffer ``buf``
         of member ``e`` (the pool's unit for that cell: :mod:`pool`); returns how many were sampled.
 
         With ``walked`` (the ghosts of a particle sub-step ``step``) only the ghosts whose walk ends
@@ -176,9 +126,9 @@ class Sampler:
         if m >= (1 << self.id_bits):
             ti.atomic_max(self.need[None], TOO_MANY)
             m = 0
-        tilt = ti.Vector.zero(self.real, self.dim)
+        tilt, shaped = ti.Vector.zero(self.real, self.dim), False
         if m > 0 and tilt_on and self.region.inside(C):
-            tilt = self.tilt(e, C)
+            tilt, shaped = self.incell.tilt(e, C), True
         U = pool.unit_of(e, C)
         if ti.static(walked):
             lead, n, clamped, top = -1, m, 0, 0  # lead face; ghosts to walk (all, or the crossings); clamped; slots used
@@ -188,7 +138,7 @@ class Sampler:
                 if lead >= 0:
                     n = self.crossings.crossing(m, lead, tilt, bits[1])
             for k in range(n):
-                id0, y, keep, cl = self._placed(e, C, lin, k, step, birth, tilt, lead, walked)
+                id0, y, keep, cl = self._placed(e, C, lin, k, step, birth, tilt, shaped, lead, walked)
                 if keep:
                     clamped += cl
                     j = pool.append(buf, U, 1)
@@ -201,7 +151,7 @@ class Sampler:
             base = pool.append(buf, U, m)
             ti.atomic_max(self.need[None], base + m)
             for k in range(m):
-                id0, y, _keep, _cl = self._placed(e, C, lin, k, step, birth, tilt, -1, walked)
+                id0, y, _keep, _cl = self._placed(e, C, lin, k, step, birth, tilt, shaped, -1, walked)
                 self._store(pool, buf, U, base + k, id0, y, birth)
         return m
 

@@ -31,7 +31,7 @@ class HybridSolver(Regridding, RegionSolver):
     1. the ghost ring (cells outside the region within Chebyshev distance 1 of it, and Dirichlet
        reservoir cells beyond covered boundary cells) gets ``ℓ`` particles plus one with
        probability ``α``, where ``ℓ + α = max(q_I^n, 0) V_c`` (paper §3), placed with the linear
-       profile of :meth:`Sampler.tilt` (the slope of the deterministic q̄, by default);
+       profile of :meth:`InCell.tilt` (:mod:`.incell`) (the slope of the deterministic q̄, by default);
     2. the SPDE advances everywhere, eq. (9), giving ``q^{n+1,*}`` and the face fluxes ``F``;
     3. every particle (real and ghost) takes one clamped step (:class:`Walker`; a ghost's step is
        drawn as it is sampled in 1, and only the ghosts that enter are stored); those ending in

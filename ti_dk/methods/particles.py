@@ -193,23 +193,15 @@ class Walker:
         Along each axis the offset ``u ∈ (0, 1)`` has density ``1 + b (u − ½)`` with
         ``b = tilt[a] ∈ [−2, 2]`` (0: uniform, as in paper §3), drawn by inverting its CDF
         ``u + b (u² − u)/2 = r`` in the cancellation-free form ``u = 2r / (c + √(c² + 2br))``,
-        ``c = 1 − b/2``. With a potential the profile is exponential instead, density ∝ e^{−β u}
-        with ``β = tilt[a]`` (the equilibrium e^{−U} of a potential linear across the cell),
-        ``u = −ln(1 − r (1 − e^{−β}))/β`` (``r − β r (1 − r)/2`` for |β| < 10⁻⁴).
+        ``c = 1 − b/2``. (With a potential the hybrid lays its particles along e^{−U} instead:
+        :meth:`ti_dk.hybrid.incell.InCell.place`.)
         """
         y = ti.Vector.zero(self.real, self.dim)
         for a in ti.static(range(self.dim)):
             r = rng.uniform(bits[a], self.real)
             b = self.real(tilt[a])
-            u = r
-            if ti.static(self.drifting):
-                steep = ti.abs(b) > 1e-4
-                bs = ti.select(steep, b, self.real(1.0))  # (no division by a constant 0 where tilt is 0)
-                u = ti.select(steep, -ti.log(self.real(1.0) - r * (self.real(1.0) - ti.exp(-bs))) / bs,
-                              r - self.real(0.5) * b * r * (self.real(1.0) - r))
-            else:
-                c = self.real(1.0) - self.real(0.5) * b
-                u = self.real(2.0) * r / (c + ti.sqrt(ti.max(c * c + self.real(2.0) * b * r, self.real(0.0))))
+            c = self.real(1.0) - self.real(0.5) * b
+            u = self.real(2.0) * r / (c + ti.sqrt(ti.max(c * c + self.real(2.0) * b * r, self.real(0.0))))
             u = ti.min(u, self.real(1.0 - 2.0**-24))  # stay inside the cell whatever the rounding
             y[a] = (self.real(C[a]) + u) * self.real(self.grid.dx[a])
         return y

@@ -259,3 +259,34 @@ class Potential:
         ubar = self.cell_values(cells, lengths)
         w = np.exp(-(ubar - ubar.min()))
         return w / w.sum()
+
+    def axis_profiles(self, cells: tuple[int, ...], lengths: tuple[float, ...], sub: int) -> np.ndarray:
+        r"""``(*cells, dim, sub + 1)``: in each cell and along each axis ``a``, the potential of the
+        Boltzmann factor's marginal ``−ln ⟨e^{−U}⟩_⊥`` (the average over the cell's other axes,
+        Gauss–Legendre) at the ``sub + 1`` evenly spaced points ``x_a = (i_a + k/sub) Δx_a`` from
+        the lower face to the upper one, less the cell's :meth:`cell_values`. The hybrid places
+        the particles it samples in a cell along these (``hybrid.ghosts.Sampler``): at
+        equilibrium they then lie as e^{−U} does within the cell, its curvature included."""
+        dim = len(cells)
+        nodes, weights = np.polynomial.legendre.leggauss(QUADRATURE[dim])
+        h = [L / n for L, n in zip(lengths, cells)]
+        centres = [(np.arange(n) + 0.5) * hh for n, hh in zip(cells, h)]
+        ubar = self.cell_values(cells, lengths)
+        out = np.empty((*cells, dim, sub + 1))
+        for a in range(dim):
+            others = [b for b in range(dim) if b != a]
+            for k in range(sub + 1):
+                axes = [centres[b] if b != a else np.arange(cells[a]) * h[a] + k / sub * h[a] for b in range(dim)]
+                grid = np.meshgrid(*axes, indexing="ij", sparse=True)
+                u0 = self(*grid)
+                total = np.zeros(u0.shape)
+                for idx in np.ndindex(*(len(nodes),) * len(others)):
+                    pts = list(grid)
+                    for b, i in zip(others, idx):
+                        pts[b] = grid[b] + 0.5 * h[b] * nodes[i]
+                    w = math.prod(0.5 * weights[i] for i in idx)
+                    with np.errstate(over="ignore", invalid="ignore"):
+                        total += w * np.exp(u0 - self(*pts))
+                with np.errstate(divide="ignore", invalid="ignore"):
+                    out[..., a, k] = u0 - np.log(total) - ubar
+        return out
