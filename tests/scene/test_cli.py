@@ -450,7 +450,8 @@ def test_signals_stop_cleanly_20_trials(tmp_path, sig):
 
 
 def test_a_killed_run_keeps_its_diagnostics_up_to_the_last_flush(tmp_path):
-    p = _start(*QUICK, "--checkpoint-every", "20", "--out", str(tmp_path), cwd=tmp_path)
+    # t_end 0.02 (≈ 8 times --quick's): still running 0.3 s after the first checkpoint, however fast
+    p = _start(*QUICK, "--t-end", "0.02", "--checkpoint-every", "20", "--out", str(tmp_path), cwd=tmp_path)
     ckpt = tmp_path / "ellipse2d_hybrid_checkpoint.h5"
     assert _wait_for(ckpt, p)
     time.sleep(0.3)
