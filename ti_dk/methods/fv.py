@@ -96,8 +96,8 @@ class SPDESolver(Fluxes, Solver):
     def replaced_in(self, mask) -> None:
         """Declare that after every step the caller overwrites q wherever the u8 field ``mask``
         (shaped like q) is 1, from something else (the hybrid's covered cells take their particle
-        counts, eq. 12): the step then skips what only those cells read, the update of such a cell
-        and the fluxes (and their normals) of a group of ``G`` cells whose lower faces all have
+        counts, eq. 12): the step then leaves such a cell as it was and skips what only those cells read,
+        the fluxes (and their normals) of a group of ``G`` cells whose lower faces all have
         such cells on both sides. Every other cell's q and every other face's flux keep their bits
         (each face's noise is keyed on the face); q̄ may round differently in the last bit (fast
         math compiles the kernel anew). Call before the first step (the kernels compile the
@@ -115,8 +115,7 @@ class SPDESolver(Fluxes, Solver):
             self._step_members(n)
         else:
             self.fluxes(n)
-            self.update()
-            self.diagnose()
+            self.update(diagnosing=True)
 
     def state(self) -> dict[str, np.ndarray]:
         """The fields a checkpoint needs to continue bit for bit."""
