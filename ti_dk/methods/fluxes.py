@@ -56,8 +56,9 @@ class Fluxes:
         return inside
 
     @ti.func
-    def _face_noise(self, J, step):
-        """The four Philox words of the counter group holding cell ``J`` (member index first).
+    def _face_noise(self, J, step, key):
+        """The four Philox words of the counter group holding cell ``J`` (member index first), under
+        ``key`` (:attr:`key`'s two words, which a loop may read once before it: see ``_step_members``).
 
         Groups are numbered on the padded face grid (``n_a + 1`` per axis, the last axis in groups
         of ``G``), so the upper boundary faces of non-periodic axes get words of their own.
@@ -69,7 +70,7 @@ class Fluxes:
             else:
                 lin = lin * ti.u32(self.n[a] + 1) + ti.u32(J[a + 1])
         return rng.philox4x32(ti.math.uvec4(lin, step, ti.u32(J[0] + self.member0), ti.u32(rng.FACE_NOISE)),
-                              ti.math.uvec2(self.key[0], self.key[1]))
+                              key)
 
     @ti.func
     def _face_flux(self, J, a: ti.template(), bits):
@@ -150,7 +151,7 @@ class Fluxes:
                 for K in ti.grouped(ti.ndrange(*self.upper_layer[a])):
                     J = K
                     J[a + 1] = self.n[a]
-                    bits = self._face_noise(J, step)
+                    bits = self._face_noise(J, step, ti.math.uvec2(self.key[0], self.key[1]))
                     w = (J[last] % G) * self.dim + a
                     word = bits[0]
                     for k in ti.static(range(1, 4)):
@@ -171,7 +172,7 @@ class Fluxes:
             J[last] = (K[last] * L + h) * G
             if J[last] < n and not self._inside_replaced(J):  # inside the replaced cells: no flux, no normal
                 live[h] = 1
-                bits = self._face_noise(J, step)
+                bits = self._face_noise(J, step, ti.math.uvec2(self.key[0], self.key[1]))
                 for w in ti.static(range(4)):
                     words[h, w] = bits[w]
         for h in ti.static(range(L)):

@@ -161,8 +161,11 @@ class SPDESolver(Fluxes, Solver):
             root_left = ti.sqrt(ti.max(q_left, self.real(0.0)))
             F_left, F_first = self.real(0.0), self.real(0.0)  # fluxes of face i − 1 and face 0
             mass, q_min, negative = 0.0, self.real(ti.math.inf), 0
+            # the key read once a member: read at each call (a field the stores to q might alias,
+            # for all LLVM knows) it cost 8 % of the step (benchmarks/RESULTS.md)
+            key = ti.math.uvec2(self.key[0], self.key[1])
             for k in range((n + G) // G):  # faces 0 … n, G per Philox counter
-                bits = self._face_noise(ti.Vector([e, G * k]), step)
+                bits = self._face_noise(ti.Vector([e, G * k]), step, key)
                 for g in ti.static(range(G)):
                     i = G * k + g
                     if i <= n:
