@@ -139,12 +139,17 @@ class Fluxes:
         made at each cell from q̄'s fluxes through both its faces per axis (a scalar per cell
         where a field of face fluxes would take ``dim`` values, with the same bits)."""
         self.inflow[None] = 0.0
+        self._make_fluxes(step)
+
+    @ti.func
+    def _make_fluxes(self, step):
+        """The loops of :meth:`fluxes` (the caller zeroes :attr:`inflow`)."""
         if ti.static(self.gaussian):
             for J in ti.grouped(self.root):  # q̄'s square roots, once per cell
                 self.root[J] = ti.sqrt(ti.max(self.qbar[J], self.real(0.0)))
         for R in ti.grouped(ti.ndrange(self.ensemble, *self.groups[:-1])):  # the rows along the last axis
             for k in range(-(-self.groups[-1] // self.lanes)):  # serially along the row
-                self._group_fluxes(self._at(R, k), step)
+                self._group_fluxes(_row_cell(R, k), step)
         G, last = ti.static(self.group, self.dim)
         for a in ti.static(range(self.dim)):  # upper boundary faces (periodic ones are face 0)
             if ti.static(self.grid.boundary[a][1] != PERIODIC):
@@ -198,15 +203,6 @@ class Fluxes:
                     J[last] += 1
 
     @ti.func
-    def _at(self, R, i):
-        """The index (member first) of entry ``i`` along the last axis of row ``R`` (the other indices)."""
-        J = ti.Vector.zero(ti.i32, self.dim + 1)
-        for c in ti.static(range(self.dim)):
-            J[c] = R[c]
-        J[self.dim] = i
-        return J
-
-    @ti.func
     def upper(self, J, a: ti.template()):
         """Index in :attr:`flux` of the upper face of cell ``J`` (member index first) along axis
         ``a``: :func:`grid.across` the upper face (periodic: face ``n_a`` is face 0)."""
@@ -221,28 +217,27 @@ class Fluxes:
             dq += (self.flux[self.upper(J, a)][a] - self.flux[J][a]) * self.real(1.0 / self.grid.dx[a])
         return dq
 
-    def update(self, diagnosing: bool = False):
+    def update(self):
         r"""Second part: eq. (9), :math:`q_I \mathrel{+}= Δt \sum_a (F_{I+½e_a} - F_{I-½e_a}) / Δx_a`,
         with the fluxes of the last :meth:`fluxes` (and eq. 10 for q̄, in the same loop: one
-        parallel task, see :func:`grid.exclusive_scan`). With ``diagnosing``, also what
-        :meth:`~.fv.SPDESolver.diagnose` makes, from the new q of the same loop."""
-        self._update(diagnosing, self.n[-1])
+        parallel task, see :func:`grid.exclusive_scan`)."""
+        self._update(self.n[-1])
 
     @ti.kernel
-    def _update(self, diagnosing: ti.template(), n: ti.i32):
+    def _update(self, n: ti.i32):
+        self._apply(False, n)
+
+    @ti.func
+    def _apply(self, diagnosing: ti.template(), n):
         """:meth:`update`, a row along the last axis (``n`` cells) per iteration of the parallel
-        loop; the diagnostics are summed along the row, one atomic per row. ``n`` is an argument,
-        not a constant, because LLVM unrolled a short constant row fully and (fast math) summed its
-        last cell's divergence in another order with :attr:`replaced` than without."""
-        last = ti.static(self.dim)
-        if ti.static(diagnosing):
-            self.mass[None] = 0.0
-            self.q_min[None] = self.real(ti.math.inf)
-            self.n_negative[None] = 0
+        loop; with ``diagnosing``, also the sums of :meth:`~.fv.SPDESolver.diagnose` (zeroed by the
+        caller) of the new q, one atomic per row. ``n`` is an argument, not a constant: LLVM
+        unrolled a short constant row fully and (fast math) summed its last cell's divergence in
+        another order with :attr:`replaced` than without."""
         for K in ti.grouped(ti.ndrange(self.ensemble, *self.n[:-1])):
             mass, q_min, negative = 0.0, self.real(ti.math.inf), 0
             for i in range(n):
-                J = self._at(K, i)
+                J = _row_cell(K, i)
                 replaced = False
                 if ti.static(self.replacing):
                     replaced = self.replaced[J] != 0
@@ -260,6 +255,12 @@ class Fluxes:
                 self.mass[None] += mass * ti.static(self.grid.cell_volume)
                 ti.atomic_min(self.q_min[None], q_min)
                 self.n_negative[None] += negative
+
+
+@ti.func
+def _row_cell(R, i):
+    """The index of entry ``i`` along the last axis of the row whose other indices are ``R``."""
+    return ti.Vector([R[c] for c in ti.static(range(R.n))] + [i])
 
 
 # ---------------------------------------------------------------------------------------

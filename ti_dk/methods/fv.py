@@ -114,8 +114,7 @@ class SPDESolver(Fluxes, Solver):
         if self.dim == 1 and not self.track_mean:
             self._step_members(n)
         else:
-            self.fluxes(n)
-            self.update(diagnosing=True)
+            self._flux_step(n, self.n[-1])
 
     def state(self) -> dict[str, np.ndarray]:
         """The fields a checkpoint needs to continue bit for bit."""
@@ -192,6 +191,17 @@ class SPDESolver(Fluxes, Solver):
             self.mass[None] += mass * vol
             ti.atomic_min(self.q_min[None], q_min)
             self.n_negative[None] += negative
+
+    @ti.kernel
+    def _flux_step(self, step: ti.u32, n: ti.i32):
+        """:meth:`fluxes`, :meth:`update` and :meth:`diagnose` as one kernel: a launch costs tens
+        of µs, a sizeable share of a 2D step on two threads (``benchmarks/RESULTS.md``)."""
+        self.inflow[None] = 0.0
+        self.mass[None] = 0.0
+        self.q_min[None] = self.real(ti.math.inf)
+        self.n_negative[None] = 0
+        self._make_fluxes(step)
+        self._apply(True, n)
 
     @ti.kernel
     def diagnose(self):
