@@ -58,7 +58,7 @@ class SPDESolver(Fluxes, Solver):
         self.key = key  # the Philox key of the run (rng.seed_key of its seed)
         rng.prepare()
         self.group = max(1, 4 // self.dim)  # cells along the last axis sharing one Philox counter
-        self.lanes = rng.lanes(self.dim)  # counter groups a flux loop iteration takes
+        self.lanes = rng.lanes(self.dim, flux=True)  # counter groups a flux loop iteration takes
         # counter groups per member: the last axis of the padded face grid cut into groups of `group`
         self.groups = (*self.n[:-1], -(-self.n[-1] // self.group))
         self.noise_scale = 1.0 / (dt * grid.cell_volume) ** 0.5  # 1/√(Δt V_c) of eq. (7)
