@@ -1,7 +1,7 @@
 """Two source trees in one process, stepped alternately: per-kernel time of each, same machine state.
 
     python benchmarks/bench_ab.py --before /path/to/old/tree [--scene sphere3d] [--steps 12] [--threads 2]
-                                  [--set KEY=VALUE ...] [--start 0] [--check]
+                                  [--set KEY=VALUE ...] [--start 0] [--check] [--blocks N [--clock cpu]]
 
 On a shared VM whose speed drifts by 20-30 % between runs a minute apart (benchmarks/RESULTS.md),
 before/after figures taken in separate processes cannot resolve a 10 % change. Here both trees'
@@ -12,6 +12,10 @@ the mean wall time of a step of each, and the mean time per step of every kernel
 kernel profiler) that takes more than 0.3 ms in either, with their ratio. ``--set`` takes scene
 overrides as on the command line, ``--start`` untimed steps first, and ``--check`` says at the end
 whether the two solvers' states are bit-identical (a change meant to keep the bits).
+``--blocks N`` times blocks of ``--steps`` steps instead, the trees alternating block by block
+(and which goes first), and prints each tree's best block: on a loaded host the best of many
+short blocks is the steadier figure, and ``--clock cpu`` (the process's CPU time) steadier still
+on one thread.
 """
 import argparse
 import importlib
@@ -31,6 +35,8 @@ def main():
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="scene overrides, as on the CLI")
     p.add_argument("--start", type=int, default=0, help="steps taken (both trees, untimed) before the timed ones")
     p.add_argument("--check", action="store_true", help="at the end, say whether both solvers' states are bit-identical")
+    p.add_argument("--blocks", type=int, default=0, help="best of this many alternating blocks of --steps steps")
+    p.add_argument("--clock", choices=("wall", "cpu"), default="wall", help="with --blocks: wall or process CPU time")
     args = p.parse_args()
     here = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
     tmp = tempfile.mkdtemp()
@@ -44,7 +50,7 @@ def main():
     names = ("ti_dk_before", "ti_dk_after")
     mods = {k: importlib.import_module(k) for k in names}
     init = ti.init
-    ti.init = lambda *a, **kw: init(*a, **{**kw, "kernel_profiler": True})
+    ti.init = lambda *a, **kw: init(*a, **{**kw, "kernel_profiler": not args.blocks})
     mods["ti_dk_after"].init("cpu", args.threads)
     solvers = {}
     parse = mods["ti_dk_after"].scene.load.parse_value
@@ -55,6 +61,9 @@ def main():
     for n in range(3 + args.start):  # compile, then the untimed start
         for s in solvers.values():
             s.step(n)
+    if args.blocks:
+        blocks(solvers, 3 + args.start, args)
+        return
     wall = dict.fromkeys(names, 0.0)
     kernels: dict = {}
     prog = impl.get_runtime().prog
@@ -88,6 +97,28 @@ def main():
         a, b = (solvers[k].state() for k in names)
         diff = [k for k in a if k not in b or not np.array_equal(a[k], b[k])]
         print(f"\nstates after step {first + steps - 1}: " + ("bit-identical" if not diff else f"differ in {diff}"))
+
+
+def blocks(solvers, first, args):
+    """``--blocks``: each tree's best time a step over blocks of ``args.steps`` steps, alternating."""
+    import taichi as ti
+    clock = time.process_time if args.clock == "cpu" else time.perf_counter
+    names = list(solvers)
+    best = dict.fromkeys(names, float("inf"))
+    n = first
+    for b in range(args.blocks):
+        for k in (names if b % 2 == 0 else names[::-1]):
+            ti.sync()
+            t = clock()
+            for i in range(args.steps):
+                solvers[k].step(n + i)
+            ti.sync()
+            best[k] = min(best[k], (clock() - t) / args.steps)
+        n += args.steps
+    a, b = (best[k] for k in names)
+    print(f"# {time.strftime('%Y-%m-%d %H:%M')}, {args.scene}, {args.threads} threads, {' '.join(args.set)}, "
+          f"best of {args.blocks} blocks of {args.steps} steps, {args.clock} clock, load {os.getloadavg()[0]:.1f}")
+    print(f"| step, ms | before {1e3 * a:.3f} | after {1e3 * b:.3f} | after/before {b / a:.3f} |")
 
 
 if __name__ == "__main__":

@@ -12,6 +12,8 @@ threads it sums both, so it measures cost, not speed-up). Cases:
 
 - ``fv1d``: 100 periodic cells × 2000 members, C = 0.125, f64: µs per step and member;
 - ``fv2d``: 256² periodic, f32, 30 ppc: Mcell/s; ``numpy`` is the same step vectorised in NumPy;
+- ``ratio2d``: fv2d's rate over the NumPy step's, the two timed in alternating blocks in one process
+  (so both see the same machine load: the figure for "fv2d ≥ k × NumPy" on a shared host);
 - ``p1d``: particles, 5 per cell, 100 cells × 2000 members: µs per step and member;
 - ``p2d``: particles, 5 per cell, 256²: M particle-steps/s;
 - ``walk3d``: particles, 5 per cell, 64³, f64: ns per particle-step of the plain walk;
@@ -26,8 +28,8 @@ import subprocess
 import sys
 import time
 
-CASES = ("fv1d", "fv2d", "numpy", "p1d", "p2d", "walk3d", "hybrid3d")
-UNITS = {"fv1d": "µs/step/member", "fv2d": "Mcell/s", "numpy": "Mcell/s", "p1d": "µs/step/member",
+CASES = ("fv1d", "fv2d", "numpy", "ratio2d", "p1d", "p2d", "walk3d", "hybrid3d")
+UNITS = {"fv1d": "µs/step/member", "fv2d": "Mcell/s", "numpy": "Mcell/s", "ratio2d": "×", "p1d": "µs/step/member",
          "p2d": "M particle-steps/s", "walk3d": "ns/particle-step", "hybrid3d": "ns/particle-step"}
 
 
@@ -65,9 +67,11 @@ def worker(case, threads, arch, blocks):
         return load_scene("equilibrium1d", method=method, cells=list(cells), init="uniform", ppc=ppc, C=C,
                           precision=precision, ensemble=ensemble, t_equil=None, histogram=None, **kw)
 
-    if case in ("fv1d", "fv2d"):
+    if case in ("fv1d", "fv2d", "ratio2d"):
         sc = scene("fv", (100,), 5.0, 2000, C=0.125) if case == "fv1d" else scene("fv", (256, 256), 30.0, 1, precision="f32")
         s = make_solver(sc, sc.initial_ppc)
+        if case == "ratio2d":
+            return ratio_2d(s, blocks)
         sec = best_of(s.step, 200 if case == "fv1d" else 100, blocks)
         return 1e6 * sec / 2000 if case == "fv1d" else 256 * 256 / sec / 1e6
     if case in ("p1d", "p2d", "walk3d"):
@@ -102,6 +106,31 @@ def worker(case, threads, arch, blocks):
         walked = s.diagnostics()["particles"] + int(ring.sum() * 5.0)
         return 1e9 * best / walked
     raise ValueError(case)
+
+
+def ratio_2d(solver, blocks):
+    """``ratio2d``: the best of ``blocks`` blocks of 50 FV steps over the best of as many blocks of
+    20 NumPy steps, the blocks alternating in this process."""
+    import numpy as np
+    import taichi as ti
+    from bench_fv import numpy_fv_step
+    numpy_step = numpy_fv_step((256, 256), np.float32, 0.0625, 30.0)
+    numpy_step()
+    solver.step(0)
+    ti.sync()
+    fv, ref, n = math.inf, math.inf, 1
+    for _ in range(blocks):
+        t = CLOCK()
+        for _ in range(50):
+            solver.step(n)
+            n += 1
+        ti.sync()
+        fv = min(fv, (CLOCK() - t) / 50)
+        t = CLOCK()
+        for _ in range(20):
+            numpy_step()
+        ref = min(ref, (CLOCK() - t) / 20)
+    return ref / fv
 
 
 def numpy_rate(cells, blocks):

@@ -49,14 +49,15 @@ def seed_key(seed: int) -> tuple[int, int]:
     return tuple(w - 2**32 if w >= 2**31 else w for w in (seed & 0xFFFFFFFF, seed >> 32))
 
 
-def lanes(dim: int) -> int:
-    """Philox calls one iteration of a walk or flux loop makes before it uses them, in ``dim``
-    dimensions: 2 in 3D, where a counter serves one particle or cell, and 1 in 1D and 2D, where it
-    already serves 2–4. A call is a chain of dependent multiplies, so with one at a time the loop
-    waits on it, and two independent ones run side by side in the core. That paid in 3D (walk and
-    flux pass); in 1D and 2D it gained nothing or lost, and every lane is a copy of the loop body
-    to compile (the LANES measurements in ``benchmarks/RESULTS.md``)."""
-    return 2 if dim == 3 else 1
+def lanes(dim: int, flux: bool = False) -> int:
+    """Philox calls one iteration of a walk or (``flux``) flux loop makes before it uses them, in
+    ``dim`` dimensions: 2 in 3D, where a counter serves one particle or cell, and 1 in 1D and 2D,
+    where it already serves 2–4, except the 2D flux loop: 2. A call is a chain of dependent
+    multiplies, so with one at a time the loop waits on it, and two independent ones run side by
+    side in the core. That paid in 3D (walk and flux pass); in 1D and 2D it gained nothing or lost
+    (the LANES measurements in ``benchmarks/RESULTS.md``), and every lane is a copy of the loop
+    body to compile, until the 2D flux loop went along rows (issue 26: −12 % of its step)."""
+    return 2 if dim == 3 or (flux and dim == 2) else 1
 
 
 def device_key(key: tuple[int, int]) -> ti.Field:

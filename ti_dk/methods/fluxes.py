@@ -56,8 +56,9 @@ class Fluxes:
         return inside
 
     @ti.func
-    def _face_noise(self, J, step):
-        """The four Philox words of the counter group holding cell ``J`` (member index first).
+    def _face_noise(self, J, step, key):
+        """The four Philox words of the counter group holding cell ``J`` (member index first), under
+        ``key`` (:attr:`key`'s two words, which a loop may read once before it: see ``_step_members``).
 
         Groups are numbered on the padded face grid (``n_a + 1`` per axis, the last axis in groups
         of ``G``), so the upper boundary faces of non-periodic axes get words of their own.
@@ -69,7 +70,7 @@ class Fluxes:
             else:
                 lin = lin * ti.u32(self.n[a] + 1) + ti.u32(J[a + 1])
         return rng.philox4x32(ti.math.uvec4(lin, step, ti.u32(J[0] + self.member0), ti.u32(rng.FACE_NOISE)),
-                              ti.math.uvec2(self.key[0], self.key[1]))
+                              key)
 
     @ti.func
     def _face_flux(self, J, a: ti.template(), bits):
@@ -138,54 +139,68 @@ class Fluxes:
         made at each cell from q̄'s fluxes through both its faces per axis (a scalar per cell
         where a field of face fluxes would take ``dim`` values, with the same bits)."""
         self.inflow[None] = 0.0
+        self._make_fluxes(step)
+
+    @ti.func
+    def _make_fluxes(self, step):
+        """The loops of :meth:`fluxes` (the caller zeroes :attr:`inflow`)."""
         if ti.static(self.gaussian):
             for J in ti.grouped(self.root):  # q̄'s square roots, once per cell
                 self.root[J] = ti.sqrt(ti.max(self.qbar[J], self.real(0.0)))
-        G, last, L, n = ti.static(self.group, self.dim, self.lanes, self.n[-1])
-        for K in ti.grouped(ti.ndrange(self.ensemble, *self.groups[:-1], -(-self.groups[-1] // L))):
-            words = ti.Matrix.zero(ti.u32, L, 4)  # L groups of G cells along the last axis, Philox calls first
-            live = ti.Vector.zero(ti.i32, L)
-            for h in ti.static(range(L)):
-                J = K
-                J[last] = (K[last] * L + h) * G
-                if J[last] < n and not self._inside_replaced(J):  # inside the replaced cells: no flux, no normal
-                    live[h] = 1
-                    bits = self._face_noise(J, step)
-                    for w in ti.static(range(4)):
-                        words[h, w] = bits[w]
-            for h in ti.static(range(L)):
-                if live[h]:
-                    I = K
-                    I[last] = (K[last] * L + h) * G
-                    for g in ti.static(range(G)):
-                        if ti.static(G == 1) or I[last] < n:
-                            for a in ti.static(range(self.dim)):
-                                self.flux[I][a] = self._face_flux(I, a, words[h, g * self.dim + a])
-                        I[last] += 1
-            if ti.static(self.track_mean):
-                if K[0] == 0:  # q̄'s right-hand side, both faces per axis (no face field)
-                    J = K
-                    J[last] = K[last] * L * G
-                    for g in ti.static(range(L * G)):
-                        if J[last] < n:
-                            dq = self.real(0.0)
-                            for a in ti.static(range(self.dim)):
-                                dq += (self._mean_flux(self.upper(J, a), a) - self._mean_flux(J, a)) \
-                                    * self.real(1.0 / self.grid.dx[a])
-                            self.dqbar[J] = dq
-                        J[last] += 1
+        for R in ti.grouped(ti.ndrange(self.ensemble, *self.groups[:-1])):  # the rows along the last axis
+            for k in range(-(-self.groups[-1] // self.lanes)):  # serially along the row
+                self._group_fluxes(_row_cell(R, k), step)
+        G, last = ti.static(self.group, self.dim)
         for a in ti.static(range(self.dim)):  # upper boundary faces (periodic ones are face 0)
             if ti.static(self.grid.boundary[a][1] != PERIODIC):
                 for K in ti.grouped(ti.ndrange(*self.upper_layer[a])):
                     J = K
                     J[a + 1] = self.n[a]
-                    bits = self._face_noise(J, step)
+                    bits = self._face_noise(J, step, ti.math.uvec2(self.key[0], self.key[1]))
                     w = (J[last] % G) * self.dim + a
                     word = bits[0]
                     for k in ti.static(range(1, 4)):
                         if w == k:
                             word = bits[k]
                     self.flux[J][a] = self._face_flux(J, a, word)
+
+    @ti.func
+    def _group_fluxes(self, K, step):
+        """:meth:`fluxes` through the lower faces of the ``L`` counter groups ``K`` (``K[last]``
+        counts them along the last axis) and q̄'s right-hand side at their cells. A row is one
+        iteration of the parallel loop (one per group cost a quarter of the pass: RESULTS.md)."""
+        G, last, L, n = ti.static(self.group, self.dim, self.lanes, self.n[-1])
+        words = ti.Matrix.zero(ti.u32, L, 4)  # L groups of G cells along the last axis, Philox calls first
+        live = ti.Vector.zero(ti.i32, L)
+        for h in ti.static(range(L)):
+            J = K
+            J[last] = (K[last] * L + h) * G
+            if J[last] < n and not self._inside_replaced(J):  # inside the replaced cells: no flux, no normal
+                live[h] = 1
+                bits = self._face_noise(J, step, ti.math.uvec2(self.key[0], self.key[1]))
+                for w in ti.static(range(4)):
+                    words[h, w] = bits[w]
+        for h in ti.static(range(L)):
+            if live[h]:
+                I = K
+                I[last] = (K[last] * L + h) * G
+                for g in ti.static(range(G)):
+                    if ti.static(G == 1) or I[last] < n:
+                        for a in ti.static(range(self.dim)):
+                            self.flux[I][a] = self._face_flux(I, a, words[h, g * self.dim + a])
+                    I[last] += 1
+        if ti.static(self.track_mean):
+            if K[0] == 0:  # q̄'s right-hand side, both faces per axis (no face field)
+                J = K
+                J[last] = K[last] * L * G
+                for g in ti.static(range(L * G)):
+                    if J[last] < n:
+                        dq = self.real(0.0)
+                        for a in ti.static(range(self.dim)):
+                            dq += (self._mean_flux(self.upper(J, a), a) - self._mean_flux(J, a)) \
+                                * self.real(1.0 / self.grid.dx[a])
+                        self.dqbar[J] = dq
+                    J[last] += 1
 
     @ti.func
     def upper(self, J, a: ti.template()):
@@ -202,20 +217,50 @@ class Fluxes:
             dq += (self.flux[self.upper(J, a)][a] - self.flux[J][a]) * self.real(1.0 / self.grid.dx[a])
         return dq
 
-    @ti.kernel
     def update(self):
         r"""Second part: eq. (9), :math:`q_I \mathrel{+}= Δt \sum_a (F_{I+½e_a} - F_{I-½e_a}) / Δx_a`,
         with the fluxes of the last :meth:`fluxes` (and eq. 10 for q̄, in the same loop: one
         parallel task, see :func:`grid.exclusive_scan`)."""
-        for J in ti.grouped(self.q):
-            replaced = False
-            if ti.static(self.replacing):
-                replaced = self.replaced[J] != 0
-            if not replaced:
-                self.q[J] += self.real(self.dt) * self._divergence(J)
-            if ti.static(self.track_mean):
-                if J[0] == 0:  # q̄ has one member
-                    self.qbar[J] += self.real(self.dt) * self.dqbar[J]
+        self._update(self.n[-1])
+
+    @ti.kernel
+    def _update(self, n: ti.i32):
+        self._apply(False, n)
+
+    @ti.func
+    def _apply(self, diagnosing: ti.template(), n):
+        """:meth:`update`, a row along the last axis (``n`` cells) per iteration of the parallel
+        loop; with ``diagnosing``, also the sums of :meth:`~.fv.SPDESolver.diagnose` (zeroed by the
+        caller) of the new q, one atomic per row. ``n`` is an argument, not a constant: LLVM
+        unrolled a short constant row fully and (fast math) summed its last cell's divergence in
+        another order with :attr:`replaced` than without."""
+        for K in ti.grouped(ti.ndrange(self.ensemble, *self.n[:-1])):
+            mass, q_min, negative = 0.0, self.real(ti.math.inf), 0
+            for i in range(n):
+                J = _row_cell(K, i)
+                replaced = False
+                if ti.static(self.replacing):
+                    replaced = self.replaced[J] != 0
+                q = self.q[J]  # `=`, not `+=`, below: on a field `+=` is an atomic add (a compare-and-swap loop)
+                self.q[J] = ti.select(replaced, q, q + self.real(self.dt) * self._divergence(J))
+                if ti.static(self.track_mean):
+                    if J[0] == 0:  # q̄ has one member
+                        self.qbar[J] = self.qbar[J] + self.real(self.dt) * self.dqbar[J]  # (not atomic)
+                if ti.static(diagnosing):
+                    qn = self.q[J]
+                    mass += ti.cast(qn, ti.f64)
+                    q_min = ti.min(q_min, qn)
+                    negative += ti.cast(qn < 0, ti.i32)
+            if ti.static(diagnosing):
+                self.mass[None] += mass * ti.static(self.grid.cell_volume)
+                ti.atomic_min(self.q_min[None], q_min)
+                self.n_negative[None] += negative
+
+
+@ti.func
+def _row_cell(R, i):
+    """The index of entry ``i`` along the last axis of the row whose other indices are ``R``."""
+    return ti.Vector([R[c] for c in ti.static(range(R.n))] + [i])
 
 
 # ---------------------------------------------------------------------------------------

@@ -58,7 +58,7 @@ class SPDESolver(Fluxes, Solver):
         self.key = key  # the Philox key of the run (rng.seed_key of its seed)
         rng.prepare()
         self.group = max(1, 4 // self.dim)  # cells along the last axis sharing one Philox counter
-        self.lanes = rng.lanes(self.dim)  # counter groups a flux loop iteration takes
+        self.lanes = rng.lanes(self.dim, flux=True)  # counter groups a flux loop iteration takes
         # counter groups per member: the last axis of the padded face grid cut into groups of `group`
         self.groups = (*self.n[:-1], -(-self.n[-1] // self.group))
         self.noise_scale = 1.0 / (dt * grid.cell_volume) ** 0.5  # 1/√(Δt V_c) of eq. (7)
@@ -96,8 +96,8 @@ class SPDESolver(Fluxes, Solver):
     def replaced_in(self, mask) -> None:
         """Declare that after every step the caller overwrites q wherever the u8 field ``mask``
         (shaped like q) is 1, from something else (the hybrid's covered cells take their particle
-        counts, eq. 12): the step then skips what only those cells read, the update of such a cell
-        and the fluxes (and their normals) of a group of ``G`` cells whose lower faces all have
+        counts, eq. 12): the step then leaves such a cell as it was and skips what only those cells read,
+        the fluxes (and their normals) of a group of ``G`` cells whose lower faces all have
         such cells on both sides. Every other cell's q and every other face's flux keep their bits
         (each face's noise is keyed on the face); q̄ may round differently in the last bit (fast
         math compiles the kernel anew). Call before the first step (the kernels compile the
@@ -114,9 +114,7 @@ class SPDESolver(Fluxes, Solver):
         if self.dim == 1 and not self.track_mean:
             self._step_members(n)
         else:
-            self.fluxes(n)
-            self.update()
-            self.diagnose()
+            self._flux_step(n, self.n[-1])
 
     def state(self) -> dict[str, np.ndarray]:
         """The fields a checkpoint needs to continue bit for bit."""
@@ -162,8 +160,11 @@ class SPDESolver(Fluxes, Solver):
             root_left = ti.sqrt(ti.max(q_left, self.real(0.0)))
             F_left, F_first = self.real(0.0), self.real(0.0)  # fluxes of face i − 1 and face 0
             mass, q_min, negative = 0.0, self.real(ti.math.inf), 0
+            # the key read once a member: read at each call (a field the stores to q might alias,
+            # for all LLVM knows) it cost 8 % of the step (benchmarks/RESULTS.md)
+            key = ti.math.uvec2(self.key[0], self.key[1])
             for k in range((n + G) // G):  # faces 0 … n, G per Philox counter
-                bits = self._face_noise(ti.Vector([e, G * k]), step)
+                bits = self._face_noise(ti.Vector([e, G * k]), step, key)
                 for g in ti.static(range(G)):
                     i = G * k + g
                     if i <= n:
@@ -190,6 +191,17 @@ class SPDESolver(Fluxes, Solver):
             self.mass[None] += mass * vol
             ti.atomic_min(self.q_min[None], q_min)
             self.n_negative[None] += negative
+
+    @ti.kernel
+    def _flux_step(self, step: ti.u32, n: ti.i32):
+        """:meth:`fluxes`, :meth:`update` and :meth:`diagnose` as one kernel: a launch costs tens
+        of µs, a sizeable share of a 2D step on two threads (``benchmarks/RESULTS.md``)."""
+        self.inflow[None] = 0.0
+        self.mass[None] = 0.0
+        self.q_min[None] = self.real(ti.math.inf)
+        self.n_negative[None] = 0
+        self._make_fluxes(step)
+        self._apply(True, n)
 
     @ti.kernel
     def diagnose(self):
