@@ -237,7 +237,7 @@ class Coupling:
                                 corr += k * self.spde.flux[self._face(J, a, side)][a]
                             else:
                                 corr -= k * self.spde.flux[self._face(J, a, side)][a]
-                self.spde.q[J] += corr
+                self.spde.q[J] = self.spde.q[J] + corr  # a plain store: each ring cell once (`+=` on a field is an atomic)
 
     @ti.func
     def _sync(self, n_cover, n_ring):
@@ -249,7 +249,7 @@ class Coupling:
             else:
                 J, inside = self.region.ring_cell(i - n_cover)
                 if inside:
-                    self.spde.q[J] += self.real(ti.cast(self.dN[J], ti.f64) / vol)
+                    self.spde.q[J] = self.spde.q[J] + self.real(ti.cast(self.dN[J], ti.f64) / vol)  # plain store, as in _s1
                     self.dN[J] = 0
 
     @ti.func
