@@ -174,7 +174,7 @@ def main():
         for t in ([1] if case == "numpy" else args.threads):
             vals = []
             for _, tree in trees:  # interleaved: the trees see the same machine load
-                env = dict(os.environ, PYTHONPATH=tree)
+                env = dict(os.environ, PYTHONPATH=os.pathsep.join(filter(None, [tree, os.environ.get("PYTHONPATH")])))  # keep a --target install
                 out = subprocess.run([sys.executable, os.path.abspath(__file__), "--worker", case, "--threads", str(t),
                                       "--arch", args.arch, "--blocks", str(args.blocks), "--clock", args.clock],
                                      env=env, cwd=tree, capture_output=True, text=True)

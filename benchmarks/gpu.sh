@@ -7,46 +7,65 @@
 # start-up and JIT; the tables inside come from the benchmark scripts themselves (bench_speed.py
 # reports the best of 3 blocks after a warm-up step). The NumPy row of bench_speed.py runs on the
 # CPU in any case; its "threads" column means nothing on CUDA.
+#
+# Parts run most important first (a smoke run, issue 26's hybrid_value table, then the throughput
+# benchmarks, then the whole scenes), each under `timeout $PART_S` (default 600 s), so a lease
+# shorter than the whole still brings back the tables that finished; the file is written as it goes.
 set -uo pipefail
 cd "$(dirname "$0")/.."
 export PYTHONPATH="$PWD${PYTHONPATH:+:$PYTHONPATH}"
 PY=${PYTHON:-python}
 OUT=${1:-benchmarks/gpu_results.md}
+PART_S=${PART_S:-600}
+part() { timeout "$PART_S" "$@" 2>&1 | grep -v '^\[Taichi\]'; echo "(exit ${PIPESTATUS[0]})"; }
 tmp=$(mktemp -d)
 trap 'rm -rf "$tmp"' EXIT
 
 {
   echo "# ti_dk on CUDA ($(date -u +%Y-%m-%d), $(nvidia-smi --query-gpu=name --format=csv,noheader 2>/dev/null | head -1), commit $(git rev-parse --short HEAD 2>/dev/null))"
   echo
-  echo "## bench_speed.py --arch cuda"
+  echo "## Smoke: void1d, fv and hybrid, on CUDA"
   echo
-  $PY benchmarks/bench_speed.py --arch cuda --threads 1 2>&1 | grep -v '^\[Taichi\]'
-  echo
-  echo "## bench_fv.py --arch cuda"
-  echo
-  $PY benchmarks/bench_fv.py --arch cuda 2>&1 | grep -v '^\[Taichi\]'
-  echo
-  echo "## bench_hybrid.py --arch cuda"
-  echo
-  $PY benchmarks/bench_hybrid.py --arch cuda 2>&1 | grep -v '^\[Taichi\]'
+  echo '```'
+  part $PY -m ti_dk.scene void1d --method fv --ensemble 8 --t-end 0.0005 --no-frames --no-progress --out "$tmp"
+  part $PY -m ti_dk.scene void1d --method hybrid --ensemble 8 --t-end 0.0005 --no-frames --no-progress --out "$tmp"
+  echo '```'
   echo
   echo "## hybrid_value.py --arch cuda (issue 26: hybrid ÷ (fv + plain walk), particle ÷ hybrid)"
   echo
-  $PY benchmarks/hybrid_value.py ellipse2d --arch cuda --steps 300 2>&1 | grep -v '^\[Taichi\]'
+  part $PY benchmarks/hybrid_value.py ellipse2d --arch cuda --steps 300
   echo
-  $PY benchmarks/hybrid_value.py sphere3d --set 'cells=[64,64,64]' --arch cuda --steps 50 2>&1 | grep -v '^\[Taichi\]'
+  part $PY benchmarks/hybrid_value.py sphere3d --set 'cells=[64,64,64]' --arch cuda --steps 50
   echo
-  $PY benchmarks/hybrid_value.py sphere3d --set 'cells=[128,128,128]' --arch cuda --steps 20 2>&1 | grep -v '^\[Taichi\]'
+  part $PY benchmarks/hybrid_value.py sphere3d --set 'cells=[128,128,128]' --arch cuda --steps 20
+  echo
+  echo "## bench_speed.py --arch cuda"
+  echo
+  part $PY benchmarks/bench_speed.py --arch cuda --threads 1
+  echo
+  echo "## bench_fv.py --arch cuda"
+  echo
+  part $PY benchmarks/bench_fv.py --arch cuda
+  echo
+  echo "## bench_hybrid.py --arch cuda"
+  echo
+  part $PY benchmarks/bench_hybrid.py --arch cuda
   echo
   echo "## The scenes (python -m ti_dk.scene NAME --arch cuda)"
   echo
   echo "| scene | wall s | max RSS KB | exit |"
   echo "|---|---|---|---|"
   for s in ellipse2d sphere3d; do
-    /usr/bin/time -f "%e %M" -o "$tmp/$s.time" $PY -m ti_dk.scene "$s" --arch cuda --no-progress --out "$tmp" \
-      > "$tmp/$s.log" 2>&1
-    rc=$?
-    read -r wall rss < "$tmp/$s.time" || true
+    t0=$SECONDS; rss=?
+    if [ -x /usr/bin/time ]; then
+      /usr/bin/time -f "%M" -o "$tmp/$s.time" timeout "$PART_S" $PY -m ti_dk.scene "$s" --arch cuda --no-progress \
+        --out "$tmp" > "$tmp/$s.log" 2>&1
+      rc=$?; read -r rss < "$tmp/$s.time" || true
+    else
+      timeout "$PART_S" $PY -m ti_dk.scene "$s" --arch cuda --no-progress --out "$tmp" > "$tmp/$s.log" 2>&1
+      rc=$?
+    fi
+    wall=$((SECONDS - t0))
     echo "| $s | ${wall:-?} | ${rss:-?} | $rc |"
   done
   echo
