@@ -285,7 +285,7 @@ def test_regrid_on_demand():
     demand = [r for r in s.regrids if r["on_demand"]]
     assert len(demand) > 3 and (s.region() & ~start).sum() > 20
     # an extension now leaves no uncovered cell below the threshold
-    assert s.regions.mark_low(s.spde.q, 4.0, 4.0) > 0
+    assert s.regions.count_low(s.spde, 4.0, False) > 0
     s.extend(60)
     q = s.density() * vol
     assert q[~s.region()].min() >= 4.0
@@ -295,7 +295,7 @@ def test_regrid_on_demand():
     for n in range(60):
         half.step(n)
     assert 0 < sum(r["on_demand"] > 0 for r in half.regrids) < len(demand)
-    if half.regions.mark_low(half.spde.q, 2.0, 4.0):  # due before step 60
+    if half.regions.count_low(half.spde, 2.0, False):  # due before step 60
         half.extend(60)
     q = half.density() * vol
     assert q[~half.region()].min() >= 2.0

@@ -1,5 +1,5 @@
-"""The hybrid's particle region (paper §3.2): on the device the covered mask, the flat lists of
-ring and covered cells and the on-demand low mask; on the host a copy of the mask, the ghost ring
+"""The hybrid's particle region (paper §3.2): on the device the covered mask and the flat lists of
+ring and covered cells; on the host a copy of the mask, the ghost ring
 (from which the lists are made) and each member's boxes.
 
 The boxes come from :mod:`regrid` (host NumPy); everything downstream reads the cell mask, so
@@ -40,7 +40,6 @@ class Region:
         self.periodic = tuple(lo == PERIODIC for lo, _ in grid.boundary)
         E, n = ensemble, self.n
         self.covered = ti.field(ti.u8, shape=(E, *n))  # 1 where the cell is in the particle region
-        self.low = ti.field(ti.u8, shape=(E, *n))  # 1: uncovered, and too low to stay so (mark_low)
         self.ring_list = ti.field(ti.i32, shape=E * math.prod(self.padded))  # flat indices of ghost cells
         self.cover_list = ti.field(ti.i32, shape=E * math.prod(n))  # flat indices of covered cells
         self.n_ring, self.n_cover = 0, 0  # lengths of the two lists
@@ -75,11 +74,13 @@ class Region:
             tagged += t
         return masks, tagged
 
-    def plan_extension(self) -> tuple[np.ndarray, int]:
-        """The region plus the cells :meth:`mark_low` marked, grown by the buffer and clustered:
-        the masks, and how many members grew. The new boxes are added to the kept ones."""
+    def plan_extension(self, ppc: np.ndarray) -> tuple[np.ndarray, int]:
+        """The region plus its uncovered cells whose content ``ppc`` is below the threshold
+        (:func:`regrid.tag`), grown by the buffer and clustered: the masks, and how many members
+        grew. The new boxes are added to the kept ones. (From the content the caller read for
+        the regrid anyway: a device mask of the low cells cost a grid-sized read per extension.)"""
         masks = self.mask()
-        low = self.low.to_numpy().astype(bool)
+        low = regrid.tag(ppc, self.params.threshold) & ~masks
         add = regrid.grow(low, self.params.buffer, (None, *self.periodic))
         members = np.flatnonzero(low.reshape(self.ensemble, -1).any(axis=1))
         for e in members:
@@ -184,20 +185,22 @@ class Region:
         return J, self.inside(ti.Vector([J[a + 1] for a in ti.static(range(self.dim))]))
 
     @ti.kernel
-    def mark_low(self, q: ti.template(), trigger: ti.f64, threshold: ti.f64) -> ti.i32:
-        """Mark in ``low`` the uncovered cells whose density ``q`` holds fewer than ``threshold``
-        particles (or is negative), which the hybrid's ``extend`` covers; return how many uncovered
-        cells hold fewer than ``trigger`` (≤ ``threshold``): an extension is due when any does."""
-        vol = ti.static(self.grid.cell_volume)
+    def count_low(self, spde: ti.template(), trigger: ti.f64, diagnosing: ti.template()) -> ti.i32:
+        """How many uncovered cells of ``spde`` hold fewer than ``trigger`` particles (content
+        ``q V_c``, or negative): an on-demand extension is due when any does (the hybrid's
+        ``extend``). With ``diagnosing`` also :meth:`SPDESolver.diagnose` in the same pass (the
+        hybrid's end of step: one pass over the grid, not two)."""
+        if ti.static(diagnosing):
+            spde.zero_diagnostics()
         due = 0
-        for J in ti.grouped(self.covered):
-            low = 0
-            content = ti.cast(q[J], ti.f64) * vol
-            if not self.covered[J] and content < threshold:
-                low = 1
-                if content < trigger:
-                    due += 1
-            self.low[J] = ti.u8(low)
+        for J in ti.grouped(spde.q):  # the order of SPDESolver.diagnose: the same sums
+            content = 0.0
+            if ti.static(diagnosing):
+                content = spde.diagnose_cell(J)
+            else:
+                content = ti.cast(spde.q[J], ti.f64) * ti.static(self.grid.cell_volume)
+            if not self.covered[J] and content < trigger:
+                due += 1
         return due
 
     @ti.kernel

@@ -20,8 +20,10 @@ class Regridding:
         self._log(n, tagged, 0)
 
     def extend(self, n: int) -> None:
-        """Cover, before step ``n``, the cells :meth:`Region.mark_low` marked (grown by the buffer,
-        clustered by Berger–Rigoutsos) and keep the rest of the region: the on-demand regrid.
+        """Cover, before step ``n``, the uncovered cells below ``threshold`` (grown by the buffer,
+        clustered by Berger–Rigoutsos; :meth:`Region.plan_extension`) and keep the rest of the
+        region: the on-demand regrid, due when :meth:`Region.count_low` finds a cell below
+        ``regrid_floor · threshold``.
 
         Tagging promises that no uncovered cell holds fewer than ``threshold`` particles; between
         scheduled regrids that promise breaks, and FV then goes negative (one 2D step at C = 1/16
@@ -34,7 +36,7 @@ class Regridding:
         4.7 σ from 5.6 particles); the cap alone to 8.
         """
         ppc = self._content()
-        masks, members = self.regions.plan_extension()
+        masks, members = self.regions.plan_extension(ppc)
         self._set_region(masks, n, ppc)
         self._log(n, int(regrid.tag(ppc, self.params.threshold).sum()), members)
 
@@ -57,7 +59,7 @@ class Regridding:
         """Make ``masks`` (``(ensemble, *cells)`` booleans) the particle region at step ``n``, its
         diagnostics up to date (a region set from outside, between steps)."""
         self._set_region(masks, n, self._content())
-        self.spde.diagnose()
+        self.diagnose()
 
     def _set_region(self, masks: np.ndarray, n: int, ppc: np.ndarray, sort: bool = False) -> None:
         """:meth:`set_region` inside a step (regrid, extension), where the step's own

@@ -79,6 +79,8 @@ class HybridSolver(Regridding, RegionSolver):
         self._change = 0.0  # created − removed at this step's regrid
         self._removed = 0.0  # SPDE content Σ q V_c of the cells the last regrid covered anew
         self.timing = {"spde": 0.0, "particles": 0.0, "regrid": 0.0}  # seconds spent in each part
+        self._trigger = params.floor * params.threshold  # content below which an extension is due
+        self._low: int | None = None  # uncovered cells below the trigger at the last diagnose (None: not known)
 
     @property
     def boxes(self) -> list[list[regrid.Box]]:
@@ -104,7 +106,20 @@ class HybridSolver(Regridding, RegionSolver):
     def initialize(self) -> None:
         """The first region from the (already initialised) SPDE, particles sampled into it."""
         self.regrid(0)
-        self.spde.diagnose()
+        self.diagnose()
+
+    def diagnose(self) -> None:
+        """The SPDE's diagnostics (:meth:`SPDESolver.diagnose`) and, in the same pass, how many
+        uncovered cells are below ``regrid_floor · threshold`` (:meth:`Region.count_low`), which
+        the next step's extension check reads."""
+        self._low = self.regions.count_low(self.spde, self._trigger, True)
+
+    def _extension_due(self) -> bool:
+        """Whether an uncovered cell holds fewer than ``regrid_floor · threshold`` particles (counted
+        at the end of the last step, or now where that step was a plain SPDE step or a state was loaded)."""
+        if self._low is None:
+            self._low = self.regions.count_low(self.spde, self._trigger, False)
+        return self._low > 0
 
     def step(self, n: int) -> None:
         """Advance from step ``n`` to ``n + 1`` (see the class docstring)."""
@@ -113,12 +128,11 @@ class HybridSolver(Regridding, RegionSolver):
             t = _clock()
             if n % self.regrid_interval == 0:
                 self.regrid(n)
-            elif self.params.floor > 0:
-                p = self.params
-                if self.regions.mark_low(self.spde.q, p.floor * p.threshold, p.threshold):
-                    self.extend(n)
+            elif self.params.floor > 0 and self._extension_due():
+                self.extend(n)
             self.timing["regrid"] += _clock() - t
         t0 = _clock()
+        self._low = None  # q changes from here
         if self.n_cover == 0:  # no particle region: a plain SPDE step
             self.spde.step(n)
             self.timing["spde"] += _clock() - t0
@@ -131,7 +145,7 @@ class HybridSolver(Regridding, RegionSolver):
         self.spde.update()
         t2 = _clock()
         self._particle_steps(n)
-        self.spde.diagnose()
+        self.diagnose()
         t3 = _clock()
         self.timing["spde"] += t2 - t1
         self.timing["particles"] += (t1 - t0) + (t3 - t2)
@@ -181,6 +195,7 @@ class HybridSolver(Regridding, RegionSolver):
     def load_state(self, st: dict[str, np.ndarray]) -> None:
         self.spde.load_state({k[5:]: v for k, v in st.items() if k.startswith("spde_")})
         self.regions.load_state(st)
+        self._low = None
         self.pool = self.pool.restored(st["x"], st["pid"], st["n_real"], self.regions.grown(self.regions.mask()))
         self.cur = 0
         self.regrids = [{k: st[f"regrid_{k}"][i].item() for k in REGRID_LOG} for i in range(len(st["regrid_step"]))]

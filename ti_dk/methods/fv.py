@@ -197,21 +197,30 @@ class SPDESolver(Fluxes, Solver):
         """:meth:`fluxes`, :meth:`update` and :meth:`diagnose` as one kernel: a launch costs tens
         of µs, a sizeable share of a 2D step on two threads (``benchmarks/RESULTS.md``)."""
         self.inflow[None] = 0.0
-        self.mass[None] = 0.0
-        self.q_min[None] = self.real(ti.math.inf)
-        self.n_negative[None] = 0
+        self.zero_diagnostics()
         self._make_fluxes(step)
         self._apply(True, n)
 
     @ti.kernel
     def diagnose(self):
         """Mass, smallest density and negative cells of q as it stands (after a step or a hybrid sync)."""
-        vol = ti.static(self.grid.cell_volume)
+        self.zero_diagnostics()
+        for J in ti.grouped(self.q):
+            self.diagnose_cell(J)
+
+    @ti.func
+    def zero_diagnostics(self):
+        """Zero the sums :meth:`diagnose_cell` adds to."""
         self.mass[None] = 0.0
         self.q_min[None] = self.real(ti.math.inf)
         self.n_negative[None] = 0
-        for J in ti.grouped(self.q):
-            qn = self.q[J]
-            self.mass[None] += ti.cast(qn, ti.f64) * vol
-            ti.atomic_min(self.q_min[None], qn)
-            self.n_negative[None] += ti.cast(qn < 0, ti.i64)
+
+    @ti.func
+    def diagnose_cell(self, J):
+        """Add cell ``J`` to the sums of :meth:`diagnose`; returns its content ``q V_c`` (f64)."""
+        qn = self.q[J]
+        content = ti.cast(qn, ti.f64) * ti.static(self.grid.cell_volume)
+        self.mass[None] += content
+        ti.atomic_min(self.q_min[None], qn)
+        self.n_negative[None] += ti.cast(qn < 0, ti.i64)
+        return content
