@@ -132,15 +132,22 @@ class Sampler:
         U = pool.unit_of(e, C)
         if ti.static(walked):
             lead, n, clamped, top = -1, m, 0, 0  # lead face; ghosts to walk (all, or the crossings); clamped; slots used
+            base = -1  # the crossings' slots, taken at once (-1: a slot per entering ghost as found)
             if m > 0:
                 lead = self.crossings.lead(e, C)
             if ti.static(self.crossings.direct):
                 if lead >= 0:
                     n = self.crossings.crossing(m, lead, tilt, bits[1])
+                    if n > 0:  # nearly every crossing enters: one atomic per cell, not one per ghost
+                        base = pool.append(buf, U, n)
+                        top = base + n
             for k in range(n):
                 id0, y, keep, cl = self._placed(e, C, lin, k, step, birth, tilt, shaped, lead, walked)
                 if keep:
                     clamped += cl
+                if base >= 0:  # a crossing that ends uncovered is stored as a hole (birth 0: dropped by the walk)
+                    self._store(pool, buf, U, base + k, id0, y, ti.select(keep, birth, 0))
+                elif keep:
                     j = pool.append(buf, U, 1)
                     top = ti.max(top, j + 1)
                     self._store(pool, buf, U, j, id0, y, birth)

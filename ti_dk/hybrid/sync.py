@@ -96,6 +96,8 @@ class Coupling:
         ghost = ident[1] == ti.u32(step + 1)
         if ghost:
             y, alive, clamped = x, True, 0
+        if ident[1] == ti.u32(0):  # a hole the fill left (Sampler.sample): no particle, dropped here
+            ghost, alive, clamped = True, False, 0
         if clamped:  # rare (p ≈ erfc(Δx/√(2Δt)) per axis): no atomic on the shared counter otherwise
             self.clamped[None] += clamped
         D = self._cell(e, y)
