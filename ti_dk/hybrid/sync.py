@@ -76,10 +76,9 @@ class Coupling:
 
     @ti.func
     def _walk(self, pool: ti.template(), cur, step, last):
-        """Step 3 (one particle sub-step): walk, mark to keep what ends in the region, add to ΔN;
-        on the ``last`` sub-step count the particles per covered cell. The ghosts of this
-        sub-step were walked by the fill, which kept only those that entered the region
-        (:meth:`Sampler.sample`): here they are only accounted for."""
+        """Step 3 (one particle sub-step): walk, mark to keep what ends in the region, add to ΔN; on the
+        ``last`` sub-step count the particles per covered cell. The fill walked this sub-step's ghosts
+        and kept those that entered (:meth:`Sampler.sample`): here they are only accounted for."""
         self.clamped[None] += self.sampler.clamped[None]  # the clamped steps of the ghosts that entered
         for u in range(pool.units(cur)):
             e, U, lo, hi = pool.unit(cur, u)
@@ -91,13 +90,12 @@ class Coupling:
 
     @ti.func
     def _account(self, pool: ti.template(), I, e, ident, x, y, alive, clamped, step, last):
-        """A walked slot of :meth:`walk`: store its step (a ghost of this sub-step was walked by the
-        fill: it keeps ``x``), mark it to keep if it ends in the region, and count the crossing."""
-        ghost = ident[1] == ti.u32(step + 1)
+        """A walked slot of :meth:`walk`: store its step (a ghost of this sub-step was walked by the fill:
+        it keeps ``x``), mark it to keep if it ends in the region, count the crossing."""
+        hole = ident[1] == ti.u32(0)  # a hole the fill left (Sampler.sample): no particle, dropped here
+        ghost = ident[1] == ti.u32(step + 1) or hole
         if ghost:
-            y, alive, clamped = x, True, 0
-        if ident[1] == ti.u32(0):  # a hole the fill left (Sampler.sample): no particle, dropped here
-            ghost, alive, clamped = True, False, 0
+            y, alive, clamped = x, not hole, 0
         if clamped:  # rare (p ≈ erfc(Δx/√(2Δt)) per axis): no atomic on the shared counter otherwise
             self.clamped[None] += clamped
         D = self._cell(e, y)
