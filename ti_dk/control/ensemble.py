@@ -43,6 +43,10 @@ def run_chunk(scene: Scene, member0: int, threads: int | None = None) -> dict:
         Queue("ti_dk-attempts").put((member0, os.getpid()))
     except (ImportError, ValueError, RuntimeError):  # not on a Dask worker
         pass
+    # Not a fresh runtime per chunk, though a chunk's solver then compiles anew (its fields get new
+    # ids, on which the offline cache is keyed): a reset dumps the offline cache, and a worker
+    # killed while dumping leaves its lock behind, after which every process on that cache
+    # compiles everything and warns (measured: tests/control/test_ensemble.py's killed worker).
     global _INIT_THREAD
     if _INIT_THREAD != threading.get_ident():  # Taichi breaks when started in another thread (an
         runtime.init("cpu", threads)  # unguarded ti_dk.init in a script Dask re-imports): start it here

@@ -60,18 +60,33 @@ def lanes(dim: int, flux: bool = False) -> int:
     return 2 if dim == 3 or (flux and dim == 2) else 1
 
 
-def device_key(key: tuple[int, int]) -> ti.Field:
-    """The key as a field of two unsigned words, which kernels read at run time (``key[0]``,
-    ``key[1]``, as they read a tuple of literals: the same bits).
+def device_key(key: tuple[int, int], member0: int = 0) -> ti.Field:
+    """The key as a field of unsigned words, which kernels read at run time (``key[0]``,
+    ``key[1]``, as they read a tuple of literals: the same bits), and in its third word the global
+    index of the solver's member 0 (:func:`member_word`).
 
     A key of literals is baked into every kernel that draws, so the offline cache compiles them
     all anew for each seed: a warm cache of the same scene with another seed cost sphere3d at 64³
     13.4 s of compilation in its first step instead of 2.0 (benchmarks/RESULTS.md). Read from a
-    field, one compiled kernel serves every seed. Solvers built by ``make_solver`` get this form.
+    field, one compiled kernel serves every seed, and every chunk of an ensemble (``member0``).
+    Solvers built by ``make_solver`` get this form.
     """
-    f = ti.field(ti.u32, shape=2)  # the two Philox key words of the run
-    f.from_numpy(np.array([w & 0xFFFFFFFF for w in key], dtype=np.uint32))
+    f = ti.field(ti.u32, shape=3)  # the two Philox key words of the run, then the first member's global index
+    f.from_numpy(np.array([w & 0xFFFFFFFF for w in (*key, member0)], dtype=np.uint32))
     return f
+
+
+@ti.func
+def member_word(key: ti.template(), member0: ti.template(), e):
+    """The counter word of local member ``e``: its global index ``member0 + e`` (mod 2³²), read from
+    the third word of a :func:`device_key` field, or from ``member0`` where ``key`` is a tuple of
+    literals (then baked in)."""
+    out = ti.u32(0)
+    if ti.static(isinstance(key, tuple)):
+        out = ti.u32(e + member0)
+    else:
+        out = ti.u32(e) + key[2]
+    return out
 
 
 @ti.func

@@ -69,8 +69,8 @@ class Fluxes:
                 lin = lin * ti.u32(-(-(self.n[a] + 1) // self.group)) + ti.u32(J[a + 1] // self.group)
             else:
                 lin = lin * ti.u32(self.n[a] + 1) + ti.u32(J[a + 1])
-        return rng.philox4x32(ti.math.uvec4(lin, step, ti.u32(J[0] + self.member0), ti.u32(rng.FACE_NOISE)),
-                              key)
+        member = rng.member_word(self.key, self.member0, J[0])
+        return rng.philox4x32(ti.math.uvec4(lin, step, member, ti.u32(rng.FACE_NOISE)), key)
 
     @ti.func
     def _face_flux(self, J, a: ti.template(), bits):

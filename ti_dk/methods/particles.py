@@ -183,8 +183,8 @@ class Walker:
 
     @ti.func
     def member(self, e):
-        """The counter word of local member ``e``: its global index."""
-        return ti.u32(e + self.member0)
+        """The counter word of local member ``e``: its global index (:func:`rng.member_word`)."""
+        return rng.member_word(self.key, self.member0, e)
 
     @ti.func
     def in_cell(self, C, bits, tilt):

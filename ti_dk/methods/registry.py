@@ -22,7 +22,7 @@ def make_solver(scene: Scene, ppc: np.ndarray, member0: int = 0) -> Solver:
     members are members ``member0 …`` of the whole ensemble (chunks of a distributed run)."""
     grid = Grid.from_scene(scene)
     real = ti.f32 if scene.method.precision == "f32" else ti.f64
-    key = rng.device_key(rng.seed_key(scene.method.seed))  # the one Philox key every solver of the run draws with
+    key = rng.device_key(rng.seed_key(scene.method.seed), member0)  # the one Philox key every solver of the run draws with
     common = dict(grid=grid, dt=scene.dt, ensemble=scene.method.ensemble, key=key, real=real, member0=member0)
     return BUILDERS[scene.method.name](scene, ppc, common)
 
