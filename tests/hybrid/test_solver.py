@@ -234,7 +234,9 @@ def test_particle_substeps_remove_the_clamp_bias(substeps):
         assert z_brown[5:-5].mean() < -3
 
 
-@pytest.mark.slow  # 10⁵ members, 768 steps, one run (2 GB)
+# 10⁵ members, 768 steps, one run (2 GB): 5–8 minutes on 2 cores, past what CI's 20 minutes leave
+# (a cold CI with it took 20:30 on 2026-12-04): pytest -m long; figures in benchmarks/RESULTS.md
+@pytest.mark.long
 def test_the_trap_tails_follow_the_walks_own_law():
     """Issue 28: every covered cell of the hybrid in trap1d's tails at 10⁵ members, mean and
     variance within 3 SE (an exact Poisson tail probability above 0.0027, the same level, where the
