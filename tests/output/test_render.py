@@ -288,3 +288,17 @@ def _has(module):
     except ImportError:
         return False
     return True
+
+
+def test_a_potential_is_drawn_as_faint_contours_in_2d():
+    """Issue 28: U's contours, 2 to 12 k_BT above its least value, over each 2D panel (and drawn
+    in every frame: they go with the artists drawn over the cached picture); none without U."""
+    from matplotlib.contour import ContourSet
+
+    def contours(scene):
+        r = Renderer.of(scene, compared=True)
+        return [[a for a in r.lines[m][0] if isinstance(a, ContourSet)] for m in range(r.rows)]
+
+    with_u = contours(load_scene("doublewell2d", cells=[16, 16], C=0.008))
+    assert all(len(c) == 1 and len(c[0].levels) == 6 and c[0].get_animated() for c in with_u)
+    assert contours(load_scene("ellipse2d", cells=[16, 16])) == [[], []]

@@ -11,21 +11,16 @@ fluctuations show and nothing the run's mean can reach saturates; the scene key 
 sets it. Denser cells take the top colour (the colour bar's upper arrow) and negative cells are
 white (its lower arrow), exactly one cell in size at any resolution.
 
-The particle region (the union of the hybrid's boxes) is outlined in black inside a white line,
-visible on every colour; the outline is that of the cell mask. The Berger–Rigoutsos boxes it is
-made of are drawn inside it as thin red lines (``BOX``; where a box side lies on the region's
-edge the outline covers it). A hole in the region (uncovered cells that no path of face
-neighbours outside the region links to the domain's edge, :func:`holes`) is outlined by a dotted
-black line on white, so it is not mistaken for a box edge or the region's outer edge. Each side
-of an axis is labelled with its boundary kind (``periodic``, ``neumann``, ``dirichlet ρ=…`` in
-particles per cell, :func:`side_labels`).
-
-2D: one panel per method side by side (the paper's Figs. 5–6). 3D: one row per method of three
-mid-plane slices (xy, xz, yz) and a ray-marched volume rendering (a Taichi kernel) of translucent
-shells of equal density, so the void, what fills it and the denser sphere inside it show; the
-particle region is a translucent red hull (paper Figs. 7–8).
-
-Lengths are in the scene's length unit L, times in L²/2D (the code's units: D = ½).
+The particle region (the union of the hybrid's boxes; the cell mask's outline) is outlined in
+black inside a white line, visible on every colour, its Berger–Rigoutsos boxes inside it as thin
+red lines (``BOX``), a hole in it (uncovered cells no path of face neighbours outside the region
+links to the domain's edge, :func:`holes`) by a dotted black line on white. Each side is labelled
+with its boundary kind (:func:`side_labels`). 2D: one panel per method side by side (the paper's
+Figs. 5–6), an external potential's contours faint white, every 2 k_BT up to 12 above its least
+value. 3D: one row per method of three mid-plane slices (xy, xz, yz) and a ray-marched volume
+rendering (a Taichi kernel) of translucent shells of equal density; the particle region is a
+translucent red hull (paper Figs. 7–8). Lengths are in the scene's length unit L, times in L²/2D
+(the code's units: D = ½).
 """
 
 import math
@@ -160,15 +155,15 @@ def dirichlet_ppc(boundary, reservoir_ppc) -> list[float]:
 
 
 class Renderer:
-    """Frames of a grid of ``cells`` (lengths ``lengths``) with ``rows`` methods, densities on
-    ``[0, vmax]`` particles per cell, headed by ``title``; ``sides``: per axis the (lower, upper)
-    sides' labels (:func:`side_labels`; None: none); ``dense``: 3D, the largest initial density
-    that the volume rendering's shell levels are fractions of (None: m with m + 3√m = vmax)."""
+    """Frames of a grid of ``cells`` (lengths ``lengths``) with ``rows`` methods, densities on ``[0, vmax]``
+    particles per cell, headed by ``title``; ``sides``: per axis the (lower, upper) sides' labels
+    (:func:`side_labels`; None: none); ``dense``: 3D, the largest initial density that the volume
+    rendering's shell levels are fractions of (None: m with m + 3√m = vmax); ``potential``: U."""
 
-    def __init__(self, cells, lengths, rows: int, vmax: float, title: str, sides=None, dense: float | None = None):
+    def __init__(self, cells, lengths, rows: int, vmax: float, title: str, sides=None, dense=None, potential=None):
         self.cells, self.lengths = tuple(int(n) for n in cells), tuple(float(v) for v in lengths)
         self.dim, self.rows, self.vmax, self.title = len(self.cells), rows, float(vmax), title
-        self.sides = sides
+        self.sides, self.potential = sides, potential  # U(x, y) drawn faintly in 2D (None: none)
         m = (math.sqrt(9 / 4 + self.vmax) - 1.5) ** 2 if dense is None else dense  # m + 3√m = vmax
         self.dx = tuple(L / n for L, n in zip(self.lengths, self.cells))
         target = 512 if self.dim == 2 else 256  # pixels along the longest side of a panel
@@ -195,7 +190,7 @@ class Renderer:
         vmax = scene.output.color_max or colour_max(ppc0, dirichlet_ppc(g.boundary, g.reservoir_ppc))
         return cls(g.cells, g.lengths, 1 + compared, vmax,
                    f"{scene.name}: {methods}, {'×'.join(map(str, g.cells))} cells, member 0",
-                   side_labels(g.boundary, g.reservoir_ppc), float(np.max(ppc0)))
+                   side_labels(g.boundary, g.reservoir_ppc), float(np.max(ppc0)), scene.potential)
 
     # -- layout (once) ------------------------------------------------------------------
     def _size(self, axes) -> tuple[int, int]:
@@ -264,6 +259,11 @@ class Renderer:
         ax.tick_params(labelsize=8, length=3, pad=2)
         if self.sides is not None:
             self._side_labels(ax, a, b)
+        if self.potential is not None and self.dim == 2:  # U's contours 2, 4, …, 12 k_BT above its least value
+            x, y = ((np.arange(n) + 0.5) * h for n, h in zip(self.cells, self.dx))
+            u = self.potential(x[:, None], y[None, :])
+            if levels := [v for v in np.min(u) + np.arange(2, 13, 2) if v < np.max(u)]:  # none: a flat U
+                lines.append(ax.contour(x, y, u.T, levels=levels, colors="white", linewidths=0.5, alpha=0.35))
         if cut is not None:
             c = (self.cells[cut] // 2 + 0.5) * self.dx[cut]
             ax.set_title(f"{names[a]}{names[b]} slice, {names[cut]} = {c:.3g} L", fontsize=9)
