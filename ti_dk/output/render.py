@@ -259,7 +259,7 @@ class Renderer:
         ax.tick_params(labelsize=8, length=3, pad=2)
         if self.sides is not None:
             self._side_labels(ax, a, b)
-        if self.potential is not None and self.dim == 2:  # U's contours 2, 4, …, 12 k_BT above its least value
+        if self.potential is not None and self.dim == 2:  # U's contours, after the 5 lines that _slices sets
             x, y = ((np.arange(n) + 0.5) * h for n, h in zip(self.cells, self.dx))
             u = self.potential(x[:, None], y[None, :])
             if levels := [v for v in np.min(u) + np.arange(2, 13, 2) if v < np.max(u)]:  # none: a flat U
