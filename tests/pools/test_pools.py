@@ -1,4 +1,4 @@
-"""The particle pools: the members' total, compaction against NumPy (order kept, across block edges), settling what was
+"""The particle pools: the members' total, compaction against NumPy (in place, ranks across block edges), settling what was
 appended, growth that keeps the particles, the one capacity rule against Poisson fluctuations, and
 the pointer layout's moves between blocks (scan, periodic wrap, growth, release)."""
 import math
@@ -28,20 +28,25 @@ def test_total_sums_a_row_of_member_counts(E):
     assert pools.total(counts, (0,)) == values[0].sum(dtype=np.int64)
 
 
-def test_compaction_keeps_the_marked_slots_in_order():
+def test_compaction_fills_the_holes_with_the_last_marked_slots_in_place():
     rng = np.random.default_rng(3)
-    E, cap = 3, 3 * BLOCK + 17  # several blocks, the last one partial
-    n = np.array([cap, 0, BLOCK + 1])
+    E, cap = 5, 3 * BLOCK + 17  # several blocks, the last one partial
+    n = np.array([cap, 0, BLOCK + 1, 2 * BLOCK, 2 * BLOCK])
     p, x, pid = _filled(E, cap, n, rng)
     keep = (rng.uniform(size=(E, cap)) < 0.4).astype(np.uint8)
+    keep[3] = 1  # all marked: nothing moves (the kept count ends a block)
+    keep[4, :BLOCK + 3] = 1  # the kept count inside a block whose start lies below it
     p.keep.from_numpy(keep)
-    p.compact(0)
-    got_x, got_pid, got_n = p.x.to_numpy()[1], p.pid.to_numpy()[1], p.n.to_numpy()[1]  # occupied() would sort
+    assert p.compacted(0) == (p, 0)
+    got_x, got_pid, got_n = p.x.to_numpy()[0], p.pid.to_numpy()[0], p.n.to_numpy()[0]  # occupied() would sort
     for e in range(E):
-        want = np.flatnonzero(keep[e, :n[e]])
-        assert got_n[e] == want.size == p.kept.to_numpy()[e]
-        assert np.array_equal(got_x[e, :want.size], x[0, e, want])
-        assert np.array_equal(got_pid[e, :want.size], pid[0, e, want])
+        marked = keep[e, :n[e]].astype(bool)
+        k = int(marked.sum())
+        holes, tails = np.flatnonzero(~marked[:k]), k + np.flatnonzero(marked[k:])
+        want_x, want_pid = x[0, e, :k].copy(), pid[0, e, :k].copy()
+        want_x[holes], want_pid[holes] = x[0, e, tails], pid[0, e, tails]  # the i-th hole takes the i-th tail
+        assert got_n[e] == k == p.kept.to_numpy()[e]
+        assert np.array_equal(got_x[e, :k], want_x) and np.array_equal(got_pid[e, :k], want_pid)
     p.n.from_numpy(np.stack([n, got_n]).astype(np.int32))
     p.truncate(0)  # drop what was appended after the compaction
     assert np.array_equal(p.n.to_numpy()[0], got_n)
@@ -112,7 +117,8 @@ def test_pointer_pool_moves_between_blocks_and_grows(src, dst):
     small = BlockPool(grid, E, 4, ti.f64)
     assert small.fitted(np.ones((E, 24, 24)), cells).capacity == pools.capacity(64)  # one block of 8×8 cells
     _move_all(p, 0, y, np.array(dst, dtype=np.int32))
-    p = p.compacted(0)
+    p, b = p.compacted(0)
+    assert b == 1  # into the other buffer
     x1, pid1, n1 = p.occupied(1)
     assert p.capacity >= n1.max()
     for e in range(E):

@@ -161,9 +161,9 @@ class HybridSolver(Regridding, RegionSolver):
             self._compact()
 
     def _compact(self) -> None:
-        """Keep the marked particles, in the other buffer (the pointer layout may need a larger pool)."""
-        self.pool = self.pool.compacted(self.cur)
-        self.cur = 1 - self.cur
+        """Keep the marked particles (in place, or in the other buffer: the pointer layout, which may
+        need a larger pool)."""
+        self.pool, self.cur = self.pool.compacted(self.cur)
 
     def _tilt_on(self, n: int) -> int:
         """Whether particles sampled at step ``n`` are tilted: not at the start with ``mean``, where

@@ -345,9 +345,8 @@ class ParticleSolver(Placement, Solver):
     def step(self, n: int) -> None:
         """Walk every particle from step ``n`` to ``n + 1``."""
         self._walk(self.cur, n)
-        if self.grid.has_dirichlet:  # drop the absorbed (in order), then inject from the reservoirs
-            self.pool.compact(self.cur)
-            self.cur = 1 - self.cur
+        if self.grid.has_dirichlet:  # drop the absorbed, then inject from the reservoirs
+            self.pool, self.cur = self.pool.compacted(self.cur)
             self._inject(self.cur, n)
             self._check_overflow()
 

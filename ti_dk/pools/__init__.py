@@ -1,5 +1,5 @@
 """Particle storage shared by the particle method and the hybrid: slots per member, growth,
-one order-keeping compaction and one capacity rule.
+one compaction per layout and one capacity rule.
 
 Two layouts (scene key ``pool_layout``; the hybrid takes either, the particle method the flat one):
 

@@ -133,9 +133,10 @@ class BlockPool(BlockSlots, BlockMoves):
         self._set_list(np.intersect1d(self.active, keys).astype(np.int32))
         self._trim()
 
-    def compacted(self, b: int) -> "BlockPool":
+    def compacted(self, b: int) -> tuple["BlockPool", int]:
         """The marked slots of buffer ``b`` moved, in order, to the front of their target blocks in
-        the other buffer; a larger pool first when a block would overflow."""
+        the other buffer; a larger pool first when a block would overflow. Returns the pool and
+        the buffer that holds the particles (the other one)."""
         pool = self
         while True:
             pool._scan(b)
@@ -144,7 +145,7 @@ class BlockPool(BlockSlots, BlockMoves):
                 break
             pool = pool.grown(need)
         pool._scatter(b)
-        return pool
+        return pool, 1 - b
 
     def restored(self, x: np.ndarray, pid: np.ndarray, n: np.ndarray, cells: np.ndarray) -> "BlockPool":
         """A pool holding ``x``, ``pid`` (``(ensemble, slots, …)``, member ``e`` in its first ``n[e]``

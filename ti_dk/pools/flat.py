@@ -11,10 +11,11 @@ from .slots import BLOCK, canonical, capacity
 class ParticlePool:
     """The particles of every member: buffer ``b`` of member ``e`` holds slots ``[0, n[b, e])``.
 
-    With ``buffers = 2`` a step reads one buffer, marks the slots to ``keep`` and :meth:`compact`
-    copies them, in order, to the front of the other; a member that needs more than
-    ``capacity`` slots gets a larger pool from :meth:`grown`. With ``ids`` every particle carries
-    its identity (two words that key its random numbers; otherwise the slot is the identity).
+    With ``buffers = 2`` a step marks the slots to ``keep`` and :meth:`compact` closes the gaps in
+    place; the second buffer takes the cell-order sort of the hybrid's regrids
+    (:meth:`Coupling.sort`); a member that needs more than ``capacity`` slots gets a larger pool
+    from :meth:`grown`. With ``ids`` every particle carries its identity (two words that key its
+    random numbers; otherwise the slot is the identity).
     """
 
     def __init__(self, ensemble: int, capacity: int, dim: int, real, buffers: int = 2, ids: bool = True):
@@ -31,13 +32,15 @@ class ParticlePool:
         self.fresh = ti.field(ti.i32, shape=())  # most chunks a member appended since the last compaction (new_units)
         if buffers == 2:
             self.keep = ti.field(ti.u8, shape=(ensemble, capacity))  # 1: the slot survives the compaction
-            self.offset = ti.field(ti.i32, shape=(ensemble, self.blocks))  # first target slot of each block
+            self.offset = ti.field(ti.i32, shape=(ensemble, self.blocks))  # marked slots before each block
+            self.tail = ti.field(ti.i32, shape=(ensemble, capacity))  # the marked slots past the kept count, by rank
+            self.split = ti.field(ti.i32, shape=ensemble)  # marked slots before the kept count
 
     @property
     def nbytes(self) -> int:
         """Bytes of the pool's slot fields (positions, identities, marks)."""
         slot = self.dim * np.dtype(numpy_dtype(self.real)).itemsize + 8 * self.ids
-        return self.ensemble * self.capacity * (self.buffers * slot + (self.buffers == 2))
+        return self.ensemble * self.capacity * (self.buffers * slot + 5 * (self.buffers == 2))
 
     def grown(self, capacity: int) -> "ParticlePool":
         """This pool, or (when ``capacity`` exceeds its own) a new one holding the same particles,
@@ -91,10 +94,11 @@ class ParticlePool:
         new.kept.from_numpy(n.astype(np.int32))
         return new
 
-    def compacted(self, b: int) -> "ParticlePool":
-        """:meth:`compact` buffer ``b`` into the other (a flat pool never needs more room)."""
+    def compacted(self, b: int) -> tuple["ParticlePool", int]:
+        """:meth:`compact` buffer ``b``; returns the pool (a flat pool never needs more room) and
+        the buffer that holds the particles (``b``: in place)."""
         self.compact(b)
-        return self
+        return self, b
 
     @ti.func
     def assume_active(self):
@@ -175,10 +179,14 @@ class ParticlePool:
 
     @ti.kernel
     def compact(self, b: ti.i32):
-        """Copy the slots of buffer ``b`` marked in :attr:`keep` to the front of the other buffer,
-        in order (per-block counts, an exclusive scan over blocks, a scatter); :attr:`kept` and
-        the other buffer's ``n`` get the count."""
-        nxt = 1 - b
+        """Keep the slots of buffer ``b`` marked in :attr:`keep`, in place: with K of them marked,
+        the marked slots below K stay where they are and the i-th unmarked slot below K (a hole,
+        in slot order) takes the i-th marked slot at or past K; :attr:`kept` and ``n`` get K.
+        Ranks come from per-block counts and an exclusive scan over blocks, so the result is the
+        same on any thread count. A particle's random numbers are keyed on its identity, never
+        on its slot, so the order changes no result; a step then moves the particles that left
+        or entered the region, not all of them (a copy of every particle to the other buffer
+        cost the 3D hybrid 8 % of its step: ``benchmarks/RESULTS.md``)."""
         for u in range(self.units(b)):
             e, _, lo, hi = self.unit(b, u)
             c = 0
@@ -187,18 +195,41 @@ class ParticlePool:
             self.offset[e, lo // BLOCK] = c
         ti.loop_config(serialize=True)  # a serial task (grid.exclusive_scan)
         for e in range(self.ensemble):
-            total = exclusive_scan(self.offset, e, self.span[None])
-            self.n[nxt, e] = total
-            self.kept[e] = total
-        for u in range(self.ensemble * self.span[None]):  # the units of the first loop
+            k = exclusive_scan(self.offset, e, self.span[None])
+            self.kept[e] = k
+            below = k  # marked slots below k (all of them when k is the end of the last block)
+            if k // BLOCK < self.span[None]:
+                below = self.offset[e, k // BLOCK]
+                for p in range(k // BLOCK * BLOCK, k):
+                    below += ti.cast(self.keep[e, p], ti.i32)
+            self.split[e] = below
+        for u in range(self.ensemble * self.span[None]):  # the tails by rank: marked slots at or past k
             e, _, lo, hi = self.unit(b, u)
-            j = self.offset[e, lo // BLOCK]
-            for p in range(lo, hi):
-                if self.keep[e, p]:
-                    self.x[nxt, e, j] = self.x[b, e, p]
-                    if ti.static(self.ids):
-                        self.pid[nxt, e, j] = self.pid[b, e, p]
-                    j += 1
+            if hi > self.kept[e]:
+                r = self.offset[e, lo // BLOCK] - self.split[e]
+                for p in range(lo, hi):
+                    if self.keep[e, p]:
+                        if p >= self.kept[e]:
+                            self.tail[e, r] = p
+                        r += 1
+        for u in range(self.ensemble * self.span[None]):  # each hole below k takes the tail of its rank
+            e, _, lo, hi = self.unit(b, u)
+            k = self.kept[e]
+            marked = k - self.offset[e, lo // BLOCK]  # from lo on; in this block alone:
+            if lo // BLOCK + 1 < self.span[None]:
+                marked = self.offset[e, lo // BLOCK + 1] - self.offset[e, lo // BLOCK]
+            if lo < k and marked < hi - lo:  # a block below k with a hole (most have none)
+                r = lo - self.offset[e, lo // BLOCK]  # holes before lo
+                for p in range(lo, ti.min(hi, k)):
+                    if not self.keep[e, p]:
+                        t = self.tail[e, r]
+                        self.x[b, e, p] = self.x[b, e, t]
+                        if ti.static(self.ids):
+                            self.pid[b, e, p] = self.pid[b, e, t]
+                        r += 1
+        ti.loop_config(serialize=True)
+        for e in range(self.ensemble):
+            self.n[b, e] = self.kept[e]
 
     @ti.kernel
     def truncate(self, b: ti.i32):
