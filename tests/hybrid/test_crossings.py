@@ -35,7 +35,7 @@ def test_ghosts_drawn_as_crossings_follow_the_exact_law(b):
     def draw(b: ti.f64, depth: ti.types.ndarray(), clamped: ti.types.ndarray(), kept: ti.types.ndarray(),
              counts: ti.types.ndarray()):
         C = ti.Vector([5, 3])  # the slab's ghost ring (cells x ≥ 5): every covered neighbour at x = 4
-        lead = sam.lead(0, C)
+        lead = s.regions.lead(0, C)
         tilt = ti.Vector([b, 0.0])
         for i in range(N):
             y, keep, cl = sam.entering(0, C, ti.u32(i), 4, 5, tilt, lead)

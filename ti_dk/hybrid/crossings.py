@@ -26,8 +26,8 @@ class Crossings:
     """The walk of a ghost cell's ghosts into the region (ti.funcs for :class:`ghosts.Sampler`).
 
     A ghost enters only if its clamped step (at most one cell per axis) ends in a covered cell.
-    Where every covered neighbour of its cell lies beyond one face (:meth:`lead`; nearly every
-    ghost cell), it must cross that face: without a potential the crossings are drawn directly
+    Where every covered neighbour of its cell lies beyond one face (:meth:`Region.lead`; nearly
+    every ghost cell), it must cross that face: without a potential the crossings are drawn directly
     (:meth:`crossing`, :meth:`entering`, the law of the ghosts that cross); with one (the drift
     depends on the position) or without a lead face each ghost is walked (:meth:`walk`).
     """
@@ -74,43 +74,8 @@ class Crossings:
         return z, keep, clamped
 
     @ti.func
-    def lead(self, e, C):
-        """``2a + s`` for the first axis ``a`` such that every covered cell ``C + δ`` (``δ ∈ {−1, 0,
-        1}^d``, ``δ ≠ 0``, across periodic sides) has ``δ_a = −1`` (``s = 0``) or every one ``+1``
-        (``s = 1``): a walk step (at most one cell per axis) from ``C`` that ends covered crosses
-        that face. −1 where no axis is such (a ring cell in a concave corner of the region)."""
-        total = 0
-        lo = ti.Vector.zero(ti.i32, self.dim)
-        hi = ti.Vector.zero(ti.i32, self.dim)
-        for I in ti.grouped(ti.ndrange(*([3] * self.dim))):  # a loop, not unrolled: less code for the JIT to load
-            off = I - 1  # δ
-            moved = False
-            for a in ti.static(range(self.dim)):
-                moved = moved or off[a] != 0
-            if moved:
-                D, ok = C + off, True
-                for a in ti.static(range(self.dim)):
-                    if ti.static(self.grid.boundary[a][0] == PERIODIC):
-                        D[a] = (D[a] + self.n[a]) % self.n[a]
-                    ok = ok and 0 <= D[a] < self.n[a]
-                if ok:
-                    if self.region.covered[self.region.member(e, D)] != 0:
-                        total += 1
-                        for a in ti.static(range(self.dim)):
-                            lo[a] += ti.cast(off[a] < 0, ti.i32)
-                            hi[a] += ti.cast(off[a] > 0, ti.i32)
-        out = -1
-        for b in ti.static(range(self.dim)):
-            a = ti.static(self.dim - 1 - b)  # the last assignment wins: the first axis
-            if total > 0 and lo[a] == total:
-                out = 2 * a
-            elif total > 0 and hi[a] == total:
-                out = 2 * a + 1
-        return out
-
-    @ti.func
     def _lead_profile(self, lead, tilt):
-        """For the lead face ``lead`` (:meth:`lead`) and the cell's profile ``tilt`` (:meth:`tilt`):
+        """For the lead face ``lead`` (:meth:`Region.lead`) and the cell's profile ``tilt`` (:meth:`tilt`):
         ``(σ, E w, E w², c0, c1)``, the axis's :func:`_reach` and the profile's density at distance
         ``v`` (cells) from the face, ``c0 + c1 v`` (:meth:`Walker.in_cell`: ``1 + b (u − ½)``)."""
         sig, ew, ew2, b = 0.0, 0.0, 0.0, 0.0

@@ -105,7 +105,7 @@ class Sampler:
             pool.pid[I] = ti.math.uvec2(id0, ti.u32(birth))
 
     @ti.func
-    def sample(self, pool: ti.template(), buf, e, C, lam, step, birth, tilt_on, walked: ti.template()):
+    def sample(self, pool: ti.template(), buf, e, C, lam, step, birth, tilt_on, lead, walked: ti.template()):
         """Sample ℓ particles plus one with probability α (``lam = ℓ + α``) in cell ``C`` (paper §3),
         placed by :meth:`InCell.tilt` (uniform where ``tilt_on`` is 0), and append them to buffer ``buf``
         of member ``e`` (the pool's unit for that cell: :mod:`pool`); returns how many were sampled.
@@ -114,9 +114,10 @@ class Sampler:
         in the region are appended, one slot each as found, already walked (the hybrid's walk does
         not move them again): where the cell has a lead face and no potential, the
         :meth:`Crossings.crossing` ones drawn by :meth:`Crossings.entering`, else each ghost walked
-        by :meth:`_placed`. (The slots' order is the threads'; a particle's numbers are keyed on
-        its identity, and :meth:`pools.occupied` sorts.) ``walked`` is a compile-time flag: the
-        regrid's ``cover`` does not compile the walk."""
+        by :meth:`_placed`; ``lead`` is the cell's lead face (:attr:`Region.leads`). (The slots'
+        order is the threads'; a particle's numbers are keyed on its identity, and
+        :meth:`pools.occupied` sorts.) ``walked`` is a compile-time flag: the regrid's ``cover``
+        does not compile the walk."""
         lin = ti.u32(0)
         for a in ti.static(range(self.dim)):
             lin = lin * ti.u32(self.region.padded[a]) + ti.u32(C[a] + 1)
@@ -131,10 +132,8 @@ class Sampler:
             tilt, shaped = self.incell.tilt(e, C), True
         U = pool.unit_of(e, C)
         if ti.static(walked):
-            lead, n, clamped, top = -1, m, 0, 0  # lead face; ghosts to walk (all, or the crossings); clamped; slots used
+            n, clamped, top = m, 0, 0  # ghosts to walk (all, or the crossings); clamped; slots used
             base = -1  # the crossings' slots, taken at once (-1: a slot per entering ghost as found)
-            if m > 0:
-                lead = self.crossings.lead(e, C)
             if ti.static(self.crossings.direct):
                 if lead >= 0:
                     n = self.crossings.crossing(m, lead, tilt, bits[1])
@@ -188,7 +187,7 @@ class Sampler:
                         lam = self.grid.reservoir[a][0] * vol
                     elif C[a] >= self.n[a]:
                         lam = self.grid.reservoir[a][1] * vol
-            self.sample(pool, cur, J[0], C, lam, step, step + 1, tilt_on, walked)
+            self.sample(pool, cur, J[0], C, lam, step, step + 1, tilt_on, ti.cast(self.region.leads[i], ti.i32), walked)
 
     @ti.kernel
     def cover(self, pool: ti.template(), cur: ti.i32, step: ti.i32, tilt_on: ti.i32, scratch: ti.template(),
@@ -208,7 +207,7 @@ class Sampler:
             J = self.region.unflatten(cells[i], shape)
             C = ti.Vector([J[a + 1] for a in ti.static(range(self.dim))])
             lam = ti.cast(self.spde.q[J], ti.f64) * vol
-            m = self.sample(pool, cur, J[0], C, lam, step, step | REGRID_BIRTH, tilt_on, 0)
+            m = self.sample(pool, cur, J[0], C, lam, step, step | REGRID_BIRTH, tilt_on, -1, 0)
             self.created[None] += m
             scratch[J] = m
         for i in range(n_new + n_gone):
