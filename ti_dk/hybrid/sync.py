@@ -77,34 +77,40 @@ class Coupling:
     @ti.func
     def _walk(self, pool: ti.template(), cur, step, last):
         """Step 3 (one particle sub-step): walk, mark to keep what ends in the region, add to ΔN; on the
-        ``last`` sub-step count the particles per covered cell. The fill walked this sub-step's ghosts
-        and kept those that entered (:meth:`Sampler.sample`): here they are only accounted for."""
+        ``last`` sub-step count the particles per covered cell. The slots appended since the last
+        compaction hold this sub-step's ghosts, which the fill walked, keeping those that entered
+        (:meth:`Sampler.sample`), and its holes: those are only accounted for, with no random numbers
+        drawn (a second loop; they were 6 % of a 3D walk's slots)."""
         self.clamped[None] += self.sampler.clamped[None]  # the clamped steps of the ghosts that entered
         for u in range(pool.units(cur)):
-            e, U, lo, hi = pool.unit(cur, u)
+            e, U, lo, hi = pool.old_unit(cur, u)
             for k in range(self.walker.rounds(lo, hi)):
                 for I, ident, x, y, alive, clamped, own in ti.static(
                         self.walker.lanes_at(pool, cur, U, e, lo, hi, k, ti.u32(step))):
                     if own:  # a repeated last slot is accounted once
-                        self._account(pool, I, e, ident, x, y, alive, clamped, step, last)
+                        self._account(pool, I, e, ident, y, alive, clamped, False, last)
+        for u in range(pool.new_units(cur)):
+            e, U, lo, hi = pool.new_unit(cur, u)
+            for p in range(lo, hi):
+                I = pool.index(cur, U, p)
+                ident = pool.pid[I]
+                # a hole the fill left (Sampler.sample) has birth word 0: no particle, dropped here
+                self._account(pool, I, e, ident, pool.x[I], ident[1] != ti.u32(0), 0, True, last)
 
     @ti.func
-    def _account(self, pool: ti.template(), I, e, ident, x, y, alive, clamped, step, last):
-        """A walked slot of :meth:`walk`: store its step (a ghost of this sub-step was walked by the fill:
-        it keeps ``x``), mark it to keep if it ends in the region, count the crossing."""
-        hole = ident[1] == ti.u32(0)  # a hole the fill left (Sampler.sample): no particle, dropped here
-        ghost = ident[1] == ti.u32(step + 1) or hole
-        if ghost:
-            y, alive, clamped = x, not hole, 0
+    def _account(self, pool: ti.template(), I, e, ident, y, alive, clamped, ghost: ti.template(), last):
+        """A slot of :meth:`walk` at ``y`` after its step (a ``ghost`` of this sub-step was walked by
+        the fill): store it, mark it to keep if it ends in the region, count the crossing."""
         if clamped:  # rare (p ≈ erfc(Δx/√(2Δt)) per axis): no atomic on the shared counter otherwise
             self.clamped[None] += clamped
         D = self._cell(e, y)
         keep = alive and self.region.covered[D] != 0
-        pool.x[I] = y
+        if ti.static(not ghost):
+            pool.x[I] = y
         pool.mark(I, keep, D)
         if keep:
             counted = True
-            if ghost:
+            if ti.static(ghost):
                 O = self.sampler.origin(ident[0])
                 if self.region.inside(O):
                     k = self.sampler.index(ident[0])
@@ -117,7 +123,7 @@ class Coupling:
                     self.p_inflow[None] += 1
             if last and counted:
                 self.count[D] += 1
-        elif not ghost:
+        elif ti.static(not ghost):
             if alive:
                 self.dN[D] += 1
             else:

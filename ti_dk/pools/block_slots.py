@@ -33,6 +33,12 @@ class BlockSlots:
         return e, U, 0, self.n[U[0], U[1], b]
 
     @ti.func
+    def old_unit(self, b, u):
+        """:meth:`unit` without the slots appended since the last compaction (:meth:`new_unit`)."""
+        e, U, lo, _hi = self.unit(b, u)
+        return e, U, lo, self.fixed[U[0], U[1]]
+
+    @ti.func
     def unit_of(self, e, C):
         """The key of the block of cell ``C`` of member ``e`` (a reservoir cell: the boundary block)."""
         B = 0

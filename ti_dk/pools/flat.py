@@ -129,6 +129,12 @@ class ParticlePool:
         return e, ti.Vector([e, 0]), k * BLOCK, ti.min(k * BLOCK + BLOCK, self.n[b, e])
 
     @ti.func
+    def old_unit(self, b, u):
+        """:meth:`unit` without the slots appended since the last compaction (:meth:`new_unit`)."""
+        e, U, lo, hi = self.unit(b, u)
+        return e, U, lo, ti.min(hi, self.kept[e])
+
+    @ti.func
     def unit_of(self, e, C):
         """The key of the unit that takes new particles of cell ``C`` of member ``e``."""
         return ti.Vector([e, 0])
