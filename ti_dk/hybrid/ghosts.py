@@ -47,9 +47,11 @@ class Sampler:
         self.created = ti.field(ti.i64, shape=())  # particles sampled at the last regrid
         self.incell = InCell(spde, region, walker, profile)  # where in its cell a sampled particle lies
 
-    def check_need(self) -> int:
-        """The most slots a member asked for in the last fill; raises if a cell overflowed its ids."""
-        need = self.need[None]
+    def check_need(self, need: int | None = None) -> int:
+        """The most slots a member asked for in the last fill or cover (``need``: as :meth:`fill`
+        returned it, else read); raises if a cell overflowed its ids."""
+        if need is None:
+            need = self.need[None]
         if need == TOO_MANY:
             raise OverflowError(
                 f"a ghost or newly covered cell holds more than {2**self.id_bits - 1} particles: "
@@ -164,11 +166,12 @@ class Sampler:
     # -- kernels --------------------------------------------------------------------------
     @ti.kernel
     def fill(self, pool: ti.template(), cur: ti.i32, step: ti.i32, n_ring: ti.i32, w: ti.f64, tilt_on: ti.i32,
-             walked: ti.template()):
+             walked: ti.template()) -> ti.i32:
         """Step 1 of the hybrid: ghost particles appended after the real ones, from
         ``(1 − w) q^n + w q^{n+1,*}`` (``w = s/k`` at particle sub-step s of k; q^n itself when
         k = 1) or the Dirichlet reservoir; with ``walked`` already walked, only those that enter
-        the region (:meth:`sample`)."""
+        the region (:meth:`sample`). Returns :attr:`need` (for :meth:`check_need`: a field read
+        from Python is a kernel launch of its own)."""
         vol = ti.static(self.grid.cell_volume)
         self.need[None] = 0
         self.clamped[None] = 0
@@ -188,6 +191,7 @@ class Sampler:
                     elif C[a] >= self.n[a]:
                         lam = self.grid.reservoir[a][1] * vol
             self.sample(pool, cur, J[0], C, lam, step, step + 1, tilt_on, ti.cast(self.region.leads[i], ti.i32), walked)
+        return self.need[None]
 
     @ti.kernel
     def cover(self, pool: ti.template(), cur: ti.i32, step: ti.i32, tilt_on: ti.i32, scratch: ti.template(),

@@ -175,8 +175,7 @@ class HybridSolver(Regridding, RegionSolver):
         :meth:`Coupling._s1`: what the SPDE left in the ghost cell); the fill is a pure
         function of its inputs, so a pool that is too small is grown and the fill redone."""
         while True:
-            self.sampler.fill(self.pool, self.cur, sub, self.n_ring, w, tilt_on, 1)
-            need = self.sampler.check_need()
+            need = self.sampler.check_need(self.sampler.fill(self.pool, self.cur, sub, self.n_ring, w, tilt_on, 1))
             if need <= self.pool.capacity:
                 return
             self.pool = self.pool.grown(2 * need)

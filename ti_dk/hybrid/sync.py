@@ -57,22 +57,18 @@ class Coupling:
     @ti.kernel
     def cross(self, pool: ti.template(), cur: ti.i32, step: ti.i32, first: ti.i32, last: ti.i32, n_ring: ti.i32,
               n_cover: ti.i32):
-        """One particle sub-step but its compaction, in one launch (a launch costs a Python call
-        and a start of the thread pool per loop): on the ``first`` sub-step the counters zeroed
-        and S1 (:meth:`_s1`, which the walk does not read: it may come after the fill and
-        before the cap that reads ``q``), then the walk (:meth:`_walk`), the entry cap
-        (:meth:`_cap`) and on the ``last`` sub-step the synchronisation (:meth:`_sync`, which
-        reads the counts, not the slots: it may come before the compaction). Top-level loops
-        of a kernel run one after another, as the separate kernels did."""
+        """One particle sub-step but its compaction, in one launch and four parallel loops, run in
+        order (each starts Taichi's CPU thread pool: ≈ 80 µs on a 2-core VM, ``benchmarks/RESULTS.md``):
+        the walk (:meth:`_walk`), the entry cap (:meth:`_cap`, with S1 on the ``first`` sub-step) and
+        the synchronisation (:meth:`_sync`, on the ``last``: it reads counts, not slots)."""
         if first:
             self.clamped[None] = 0
             self.p_inflow[None] = 0
-        self._s1(n_ring * first)
         self._walk(pool, cur, step, last)
-        self._cap(pool, cur, step, last, n_ring)
+        self._cap(pool, cur, step, first, last, n_ring)
         if last:
             self.wall_inflow[None] = 0.0
-        self._sync(n_cover * last, n_ring * last)
+        self._sync(n_cover * last, n_ring, last)
 
     @ti.func
     def _walk(self, pool: ti.template(), cur, step, last):
@@ -80,18 +76,16 @@ class Coupling:
         ``last`` sub-step count the particles per covered cell. The slots appended since the last
         compaction hold this sub-step's ghosts, which the fill walked, keeping those that entered
         (:meth:`Sampler.sample`), and its holes: those are only accounted for, with no random numbers
-        drawn (a second loop; they were 6 % of a 3D walk's slots)."""
+        drawn (they were 6 % of a 3D walk's slots)."""
         self.clamped[None] += self.sampler.clamped[None]  # the clamped steps of the ghosts that entered
         for u in range(pool.units(cur)):
-            e, U, lo, hi = pool.old_unit(cur, u)
-            for k in range(self.walker.rounds(lo, hi)):
+            e, U, lo, mid, hi = pool.split_unit(cur, u)
+            for k in range(self.walker.rounds(lo, mid)):
                 for I, ident, x, y, alive, clamped, own in ti.static(
-                        self.walker.lanes_at(pool, cur, U, e, lo, hi, k, ti.u32(step))):
+                        self.walker.lanes_at(pool, cur, U, e, lo, mid, k, ti.u32(step))):
                     if own:  # a repeated last slot is accounted once
                         self._account(pool, I, e, ident, y, alive, clamped, False, last)
-        for u in range(pool.new_units(cur)):
-            e, U, lo, hi = pool.new_unit(cur, u)
-            for p in range(lo, hi):
+            for p in range(mid, hi):
                 I = pool.index(cur, U, p)
                 ident = pool.pid[I]
                 # a hole the fill left (Sampler.sample) has birth word 0: no particle, dropped here
@@ -185,7 +179,7 @@ class Coupling:
             self.count[J] = 0
 
     @ti.func
-    def _cap(self, pool: ti.template(), cur, step, last, n_ring):
+    def _cap(self, pool: ti.template(), cur, step, first, last, n_ring):
         """Let at most ``⌊q_I V_c + ΔN_I⌋`` of the ghosts of cell ``I`` enter the region in this
         sub-step: the content the SPDE left in it (after S1) plus what the region gave it so far.
         Without this cap a ghost cell holding ``ℓ + α`` particles, ``ℓ + 1`` ghosts of which all
@@ -194,11 +188,14 @@ class Coupling:
         that enter are those of lowest index among the ones that walked in, so the result does
         not depend on thread order; cells with more than 64 ghosts are not capped (64 ghosts all
         walking in does not happen). Only the slots appended since the last compaction can hold
-        this sub-step's ghosts, so only those are read."""
+        this sub-step's ghosts, so only those are read. On the ``first`` sub-step a ring cell takes
+        S1 (:meth:`_s1`) first; :meth:`_sync` clears its ``entered``."""
         vol = ti.static(self.grid.cell_volume)
         for i in range(n_ring):
             J, inside = self.region.ring_cell(i)
             if inside:
+                if first:
+                    self._s1(J)
                 room = ti.floor(ti.cast(self.spde.q[J], ti.f64) * vol + ti.cast(self.dN[J], ti.f64))
                 cap = ti.cast(ti.max(room, 0.0), ti.i32)
                 self.cap[J] = cap
@@ -219,35 +216,29 @@ class Coupling:
                                 self.count[self._cell(e, pool.x[I])] += 1
                         else:
                             pool.unmark(I)
-        for i in range(n_ring):
-            J, inside = self.region.ring_cell(i)
-            if inside:
-                self.entered[J] = ti.u64(0)
 
     @ti.func
-    def _s1(self, n_ring):
-        r"""S1 of eq. (12), before the entry cap (:meth:`cross`): each ghost cell ``I`` drops the terms
+    def _s1(self, J):
+        r"""S1 of eq. (12) for ghost cell ``J``, before the entry cap (:meth:`_cap`): it drops the terms
         ∓ Δt F / Δx_a of eq. (9) across its faces with covered cells, ``q_I ← q_I^{n+1,*} − Σ_{S1} F^{i→I}/V_c``,
         so that ``q_I`` holds what the SPDE leaves in it; S2 (``ΔN_I / V_c``) is added by :meth:`_sync`."""
-        for i in range(n_ring):
-            J, inside = self.region.ring_cell(i)
-            if inside:
-                corr = self.real(0.0)
-                for a in ti.static(range(self.dim)):
-                    k = self.real(self.dt / self.grid.dx[a])
-                    # F is positive down the axis: F = ½ Δq/Δx + noise
-                    for side in ti.static(range(2)):
-                        K, has = across(self.grid, J, a, side)
-                        if has and self.region.covered[K]:
-                            if ti.static(side == 0):
-                                corr += k * self.spde.flux[self._face(J, a, side)][a]
-                            else:
-                                corr -= k * self.spde.flux[self._face(J, a, side)][a]
-                self.spde.q[J] = self.spde.q[J] + corr  # a plain store: each ring cell once (`+=` on a field is an atomic)
+        corr = self.real(0.0)
+        for a in ti.static(range(self.dim)):
+            k = self.real(self.dt / self.grid.dx[a])
+            # F is positive down the axis: F = ½ Δq/Δx + noise
+            for side in ti.static(range(2)):
+                K, has = across(self.grid, J, a, side)
+                if has and self.region.covered[K]:
+                    if ti.static(side == 0):
+                        corr += k * self.spde.flux[self._face(J, a, side)][a]
+                    else:
+                        corr -= k * self.spde.flux[self._face(J, a, side)][a]
+        self.spde.q[J] = self.spde.q[J] + corr  # a plain store: each ring cell once (`+=` on a field is an atomic)
 
     @ti.func
-    def _sync(self, n_cover, n_ring):
-        """Step 4: covered cells take their counts; ring cells add S2, ΔN / V_c (eq. 12)."""
+    def _sync(self, n_cover, n_ring, last):
+        """Step 4 (``last``; ``n_cover`` is 0 on the other sub-steps): covered cells take their counts;
+        ring cells add S2, ΔN / V_c (eq. 12). Every sub-step: a ring cell's ``entered`` is cleared."""
         vol = ti.static(self.grid.cell_volume)
         for i in range(n_cover + n_ring):  # one parallel loop: covered cells, then ring cells
             if i < n_cover:
@@ -255,8 +246,10 @@ class Coupling:
             else:
                 J, inside = self.region.ring_cell(i - n_cover)
                 if inside:
-                    self.spde.q[J] = self.spde.q[J] + self.real(ti.cast(self.dN[J], ti.f64) / vol)  # plain store, as in _s1
-                    self.dN[J] = 0
+                    self.entered[J] = ti.u64(0)
+                    if last:
+                        self.spde.q[J] = self.spde.q[J] + self.real(ti.cast(self.dN[J], ti.f64) / vol)  # plain store, as in _s1
+                        self.dN[J] = 0
 
     @ti.func
     def _take_count(self, J):

@@ -15,7 +15,7 @@ Two layouts (scene key ``pool_layout``; the hybrid takes either, the particle me
 The hybrid reaches a particle through the same ti.funcs in both: a loop over :meth:`units`
 (a member's chunk of slots, or a block), :meth:`unit` (its member, key and slot range),
 :meth:`new_units` / :meth:`new_unit` (the same for the slots appended since the last compaction),
-:meth:`old_unit` (a unit's other slots),
+:meth:`split_unit` (a unit's slots cut into the held and the appended),
 :meth:`index` (the index of a slot in ``x``, ``pid``), :meth:`unit_of` and :meth:`append` (room
 for new particles of a cell), :meth:`mark` / :meth:`marked` / :meth:`unmark` (whether a slot
 survives the next :meth:`compacted`). A particle's random numbers are keyed on its ``pid``, never

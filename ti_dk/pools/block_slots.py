@@ -33,10 +33,11 @@ class BlockSlots:
         return e, U, 0, self.n[U[0], U[1], b]
 
     @ti.func
-    def old_unit(self, b, u):
-        """:meth:`unit` without the slots appended since the last compaction (:meth:`new_unit`)."""
-        e, U, lo, _hi = self.unit(b, u)
-        return e, U, lo, self.fixed[U[0], U[1]]
+    def split_unit(self, b, u):
+        """:meth:`unit` with its slots cut at ``mid``: ``(e, U, lo, mid, hi)``, ``[lo, mid)`` held since
+        the last compaction, ``[mid, hi)`` appended since (:meth:`new_unit`)."""
+        e, U, lo, hi = self.unit(b, u)
+        return e, U, lo, self.fixed[U[0], U[1]], hi
 
     @ti.func
     def unit_of(self, e, C):

@@ -34,13 +34,12 @@ class ParticlePool:
             self.keep = ti.field(ti.u8, shape=(ensemble, capacity))  # 1: the slot survives the compaction
             self.offset = ti.field(ti.i32, shape=(ensemble, self.blocks))  # marked slots before each block
             self.tail = ti.field(ti.i32, shape=(ensemble, capacity))  # the marked slots past the kept count, by rank
-            self.split = ti.field(ti.i32, shape=ensemble)  # marked slots before the kept count
 
     @property
     def nbytes(self) -> int:
         """Bytes of the pool's slot fields (positions, identities, marks)."""
         slot = self.dim * np.dtype(numpy_dtype(self.real)).itemsize + 8 * self.ids
-        return self.ensemble * self.capacity * (self.buffers * slot + 5 * (self.buffers == 2))
+        return self.ensemble * self.capacity * (self.buffers * slot + 5 * (self.buffers == 2))  # keep, tail
 
     def grown(self, capacity: int) -> "ParticlePool":
         """This pool, or (when ``capacity`` exceeds its own) a new one holding the same particles,
@@ -129,10 +128,11 @@ class ParticlePool:
         return e, ti.Vector([e, 0]), k * BLOCK, ti.min(k * BLOCK + BLOCK, self.n[b, e])
 
     @ti.func
-    def old_unit(self, b, u):
-        """:meth:`unit` without the slots appended since the last compaction (:meth:`new_unit`)."""
+    def split_unit(self, b, u):
+        """:meth:`unit` with its slots cut at ``mid``: ``(e, U, lo, mid, hi)``, ``[lo, mid)`` held since
+        the last compaction, ``[mid, hi)`` appended since (:meth:`new_unit`)."""
         e, U, lo, hi = self.unit(b, u)
-        return e, U, lo, ti.min(hi, self.kept[e])
+        return e, U, lo, ti.min(ti.max(self.kept[e], lo), hi), hi
 
     @ti.func
     def unit_of(self, e, C):
@@ -199,32 +199,26 @@ class ParticlePool:
             for p in range(lo, hi):
                 c += ti.cast(self.keep[e, p], ti.i32)
             self.offset[e, lo // BLOCK] = c
-        ti.loop_config(serialize=True)  # a serial task (grid.exclusive_scan)
+        # a serial task (grid.exclusive_scan): the scan, then the tails by rank, the marked slots at or
+        # past k (a few blocks: a parallel loop would cost a start of the thread pool, more than them)
+        ti.loop_config(serialize=True)
         for e in range(self.ensemble):
             k = exclusive_scan(self.offset, e, self.span[None])
+            r = 0
+            for p in range(k, self.n[b, e]):
+                if self.keep[e, p]:
+                    self.tail[e, r] = p
+                    r += 1
             self.kept[e] = k
-            below = k  # marked slots below k (all of them when k is the end of the last block)
-            if k // BLOCK < self.span[None]:
-                below = self.offset[e, k // BLOCK]
-                for p in range(k // BLOCK * BLOCK, k):
-                    below += ti.cast(self.keep[e, p], ti.i32)
-            self.split[e] = below
-        for u in range(self.ensemble * self.span[None]):  # the tails by rank: marked slots at or past k
-            e, _, lo, hi = self.unit(b, u)
-            if hi > self.kept[e]:
-                r = self.offset[e, lo // BLOCK] - self.split[e]
-                for p in range(lo, hi):
-                    if self.keep[e, p]:
-                        if p >= self.kept[e]:
-                            self.tail[e, r] = p
-                        r += 1
+            self.n[b, e] = k  # unit() now ends each member's last block at k
         for u in range(self.ensemble * self.span[None]):  # each hole below k takes the tail of its rank
             e, _, lo, hi = self.unit(b, u)
             k = self.kept[e]
             marked = k - self.offset[e, lo // BLOCK]  # from lo on; in this block alone:
             if lo // BLOCK + 1 < self.span[None]:
                 marked = self.offset[e, lo // BLOCK + 1] - self.offset[e, lo // BLOCK]
-            if lo < k and marked < hi - lo:  # a block below k with a hole (most have none)
+            # a block below k with a hole (most have none), or the one that k cuts
+            if lo < k and (marked < BLOCK or lo + BLOCK > k):
                 r = lo - self.offset[e, lo // BLOCK]  # holes before lo
                 for p in range(lo, ti.min(hi, k)):
                     if not self.keep[e, p]:
@@ -233,9 +227,6 @@ class ParticlePool:
                         if ti.static(self.ids):
                             self.pid[b, e, p] = self.pid[b, e, t]
                         r += 1
-        ti.loop_config(serialize=True)
-        for e in range(self.ensemble):
-            self.n[b, e] = self.kept[e]
 
     @ti.kernel
     def truncate(self, b: ti.i32):
