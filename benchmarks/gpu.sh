@@ -39,6 +39,10 @@ trap 'rm -rf "$tmp"' EXIT
   echo
   part $PY benchmarks/hybrid_value.py sphere3d --set 'cells=[128,128,128]' --arch cuda --steps 20
   echo
+  echo "### where the GPU hybrid's step goes (kernel profiler on: it adds to every launch)"
+  echo
+  part $PY benchmarks/hybrid_value.py ellipse2d --arch cuda --steps 100 --kernels
+  echo
   echo "## bench_speed.py --arch cuda"
   echo
   part $PY benchmarks/bench_speed.py --arch cuda --threads 1
