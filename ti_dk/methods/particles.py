@@ -302,7 +302,7 @@ class ParticleSolver(Placement, Solver):
         self.key = key  # the Philox key of the run (rng.seed_key of its seed)
         self.walker = Walker(grid, dt, real, key, member0)
         open_ = grid.has_dirichlet
-        self.pool = pools.ParticlePool(ensemble, capacity, self.dim, real, buffers=1 + open_, ids=open_)
+        self.pool = pools.ParticlePool(ensemble, capacity, self.dim, real, buffers=1, ids=open_)
         self.cur = 0  # the pool buffer holding the particles
         self.count = ti.field(ti.i32, shape=(ensemble, *self.n))  # particles per cell (after bin())
         self.clamped = ti.field(ti.i64, shape=())  # axis steps clamped to ±Δx in the last step
@@ -357,10 +357,7 @@ class ParticleSolver(Placement, Solver):
         return st | ({"pid": self.pool.pid.to_numpy()[b]} if self.grid.has_dirichlet else {})
 
     def load_state(self, st: dict[str, np.ndarray]) -> None:
-        n = st["n_alive"][None]
-        if self.pool.buffers == 2:
-            n = np.concatenate([n, np.zeros_like(n)])
-        self.pool.load(st["x"][None], st["pid"][None] if self.grid.has_dirichlet else None, n)
+        self.pool.load(st["x"][None], st["pid"][None] if self.grid.has_dirichlet else None, st["n_alive"][None])
         self.cur = 0
 
     def density(self) -> np.ndarray:

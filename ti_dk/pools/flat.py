@@ -11,11 +11,11 @@ from .slots import BLOCK, canonical, capacity
 class ParticlePool:
     """The particles of every member: buffer ``b`` of member ``e`` holds slots ``[0, n[b, e])``.
 
-    With ``buffers = 2`` a step marks the slots to ``keep`` and :meth:`compact` closes the gaps in
-    place; the second buffer takes the cell-order sort of the hybrid's regrids
-    (:meth:`Coupling.sort`); a member that needs more than ``capacity`` slots gets a larger pool
-    from :meth:`grown`. With ``ids`` every particle carries its identity (two words that key its
-    random numbers; otherwise the slot is the identity).
+    With ``ids`` every particle carries its identity (two words that key its random numbers;
+    otherwise the slot is the identity, and particles neither enter nor leave): then a step marks
+    the slots to ``keep`` and :meth:`compact` closes the gaps in place. A second buffer
+    (``buffers = 2``) takes the cell-order sort of the hybrid's regrids (:meth:`Coupling.sort`). A
+    member that needs more than ``capacity`` slots gets a larger pool from :meth:`grown`.
     """
 
     def __init__(self, ensemble: int, capacity: int, dim: int, real, buffers: int = 2, ids: bool = True):
@@ -30,7 +30,7 @@ class ParticlePool:
         self.kept = ti.field(ti.i32, shape=ensemble)  # slots the last compaction kept, per member
         self.span = ti.field(ti.i32, shape=())  # blocks holding particles in the buffer a loop reads (units)
         self.fresh = ti.field(ti.i32, shape=())  # most chunks a member appended since the last compaction (new_units)
-        if buffers == 2:
+        if ids:  # particles enter and leave: the compaction's fields
             self.keep = ti.field(ti.u8, shape=(ensemble, capacity))  # 1: the slot survives the compaction
             self.offset = ti.field(ti.i32, shape=(ensemble, self.blocks))  # marked slots before each block
             self.tail = ti.field(ti.i32, shape=(ensemble, capacity))  # the marked slots past the kept count, by rank
@@ -39,7 +39,7 @@ class ParticlePool:
     def nbytes(self) -> int:
         """Bytes of the pool's slot fields (positions, identities, marks)."""
         slot = self.dim * np.dtype(numpy_dtype(self.real)).itemsize + 8 * self.ids
-        return self.ensemble * self.capacity * (self.buffers * slot + 5 * (self.buffers == 2))  # keep, tail
+        return self.ensemble * self.capacity * (self.buffers * slot + 5 * self.ids)  # keep, tail
 
     def grown(self, capacity: int) -> "ParticlePool":
         """This pool, or (when ``capacity`` exceeds its own) a new one holding the same particles,

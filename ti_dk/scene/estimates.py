@@ -65,9 +65,9 @@ def memory_estimate(scene: Scene) -> dict[str, float]:
             est["particles"] += 2 * scene.method.ensemble * per_member * (scene.grid.dim * real + 8)
         if method == "particle":
             est["fields"] += mc * 4
-            # with reservoirs: ids (8 bytes) and two buffers plus a keep flag (the pool compacts)
+            # with reservoirs: ids (8 bytes), a keep flag and a tail rank (the pool compacts in place)
             d = Grid.from_scene(scene).has_dirichlet
-            per_slot = (1 + d) * (scene.grid.dim * real + 8 * d) + d
+            per_slot = scene.grid.dim * real + 13 * d
             est["particles"] += scene.method.ensemble * _particles(scene) * per_slot
     est["host copies"] = 3 * mc * 8  # density read back as float64, and its statistics update
     rows = 1 if scene.stats.t_equil is not None else len(scene.stats.output_times)
