@@ -76,6 +76,21 @@ def numpy_dtype(real):
     return np.float32 if real == ti.f32 else np.float64
 
 
+def row_spread(rows: int) -> int:
+    """How many iterations a parallel loop over ``rows`` rows should give each row (one works, the
+    others are empty), so that every CPU thread gets rows (1 on other backends and on one thread).
+
+    Taichi 1.7.4's CPU backend (``make_cpu_multithreaded_range_for``, its default) cuts a parallel
+    range into one contiguous block per thread of at least 512 iterations, so a loop over the 256
+    rows of a 256² grid ran on one thread however many there were. Cutting the rows into pieces
+    cost a thread 15 % (the piece's start is not known when the row loop is compiled); empty
+    iterations cost nothing measurable (``benchmarks/RESULTS.md``)."""
+    cfg = ti.lang.impl.current_cfg()
+    if cfg.arch != ti.cpu or cfg.cpu_max_num_threads < 2:
+        return 1
+    return max(1, -(-512 * cfg.cpu_max_num_threads // max(rows, 1)))
+
+
 @ti.func
 def cell_of(x, h, n):
     """Index of the cell of width ``h`` holding coordinate ``x``, clamped into ``[0, n)``."""

@@ -147,9 +147,10 @@ class Fluxes:
         if ti.static(self.gaussian):
             for J in ti.grouped(self.root):  # q̄'s square roots, once per cell
                 self.root[J] = ti.sqrt(ti.max(self.qbar[J], self.real(0.0)))
-        for R in ti.grouped(ti.ndrange(self.ensemble, *self.groups[:-1])):  # the rows along the last axis
-            for k in range(-(-self.groups[-1] // self.lanes)):  # serially along the row
-                self._group_fluxes(_row_cell(R, k), step)
+        for S in ti.grouped(ti.ndrange(self.ensemble, *self.groups[:-1], self.spread)):  # the rows along the last axis
+            if S[S.n - 1] == 0:  # a row's other iterations are empty (grid.row_spread)
+                for k in range(-(-self.groups[-1] // self.lanes)):  # serially along the row
+                    self._group_fluxes(_row_cell(S, k), step)
         G, last = ti.static(self.group, self.dim)
         for a in ti.static(range(self.dim)):  # upper boundary faces (periodic ones are face 0)
             if ti.static(self.grid.boundary[a][1] != PERIODIC):
@@ -229,38 +230,40 @@ class Fluxes:
 
     @ti.func
     def _apply(self, diagnosing: ti.template(), n):
-        """:meth:`update`, a row along the last axis (``n`` cells) per iteration of the parallel
-        loop; with ``diagnosing``, also the sums of :meth:`~.fv.SPDESolver.diagnose` (zeroed by the
-        caller) of the new q, one atomic per row. ``n`` is an argument, not a constant: LLVM
-        unrolled a short constant row fully and (fast math) summed its last cell's divergence in
-        another order with :attr:`replaced` than without."""
-        for K in ti.grouped(ti.ndrange(self.ensemble, *self.n[:-1])):
-            mass, q_min, negative = 0.0, self.real(ti.math.inf), 0
-            for i in range(n):
-                J = _row_cell(K, i)
-                replaced = False
-                if ti.static(self.replacing):
-                    replaced = self.replaced[J] != 0
-                q = self.q[J]  # `=`, not `+=`, below: on a field `+=` is an atomic add (a compare-and-swap loop)
-                self.q[J] = ti.select(replaced, q, q + self.real(self.dt) * self._divergence(J))
-                if ti.static(self.track_mean):
-                    if J[0] == 0:  # q̄ has one member
-                        self.qbar[J] = self.qbar[J] + self.real(self.dt) * self.dqbar[J]  # (not atomic)
+        """:meth:`update`, a row along the last axis (``n`` cells) per working iteration of the
+        parallel loop (:attr:`spread` iterations a row); with ``diagnosing``, also the sums of
+        :meth:`~.fv.SPDESolver.diagnose` (zeroed by the caller) of the new q, one atomic per row.
+        ``n`` is an argument, not a constant: LLVM unrolled a short constant row fully and (fast
+        math) summed its last cell's divergence in another order with :attr:`replaced` than without."""
+        for S in ti.grouped(ti.ndrange(self.ensemble, *self.n[:-1], self.spread)):
+            if S[S.n - 1] == 0:  # a row's other iterations are empty (grid.row_spread)
+                mass, q_min, negative = 0.0, self.real(ti.math.inf), 0
+                for i in range(n):
+                    J = _row_cell(S, i)
+                    replaced = False
+                    if ti.static(self.replacing):
+                        replaced = self.replaced[J] != 0
+                    q = self.q[J]  # `=`, not `+=`, below: on a field `+=` is an atomic add (a compare-and-swap loop)
+                    self.q[J] = ti.select(replaced, q, q + self.real(self.dt) * self._divergence(J))
+                    if ti.static(self.track_mean):
+                        if J[0] == 0:  # q̄ has one member
+                            self.qbar[J] = self.qbar[J] + self.real(self.dt) * self.dqbar[J]  # (not atomic)
+                    if ti.static(diagnosing):
+                        qn = self.q[J]
+                        mass += ti.cast(qn, ti.f64)
+                        q_min = ti.min(q_min, qn)
+                        negative += ti.cast(qn < 0, ti.i32)
                 if ti.static(diagnosing):
-                    qn = self.q[J]
-                    mass += ti.cast(qn, ti.f64)
-                    q_min = ti.min(q_min, qn)
-                    negative += ti.cast(qn < 0, ti.i32)
-            if ti.static(diagnosing):
-                self.mass[None] += mass * ti.static(self.grid.cell_volume)
-                ti.atomic_min(self.q_min[None], q_min)
-                self.n_negative[None] += negative
+                    self.mass[None] += mass * ti.static(self.grid.cell_volume)
+                    ti.atomic_min(self.q_min[None], q_min)
+                    self.n_negative[None] += negative
 
 
 @ti.func
-def _row_cell(R, i):
-    """The index of entry ``i`` along the last axis of the row whose other indices are ``R``."""
-    return ti.Vector([R[c] for c in ti.static(range(R.n))] + [i])
+def _row_cell(S, i):
+    """The index of entry ``i`` along the last axis of the row whose other indices are ``S``'s but
+    its last (the iteration within the row's spread: :func:`~..core.grid.row_spread`)."""
+    return ti.Vector([S[c] for c in ti.static(range(S.n - 1))] + [i])
 
 
 # ---------------------------------------------------------------------------------------

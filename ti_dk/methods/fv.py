@@ -6,7 +6,7 @@ import numpy as np
 import taichi as ti
 
 from ..core import rng
-from ..core.grid import DIRICHLET, NEUMANN, PERIODIC, Grid, numpy_dtype
+from ..core.grid import DIRICHLET, NEUMANN, PERIODIC, Grid, numpy_dtype, row_spread
 from .solver import Solver
 from .fluxes import Fluxes, drift_coefficients
 
@@ -61,6 +61,7 @@ class SPDESolver(Fluxes, Solver):
         self.lanes = rng.lanes(self.dim, flux=True)  # counter groups a flux loop iteration takes
         # counter groups per member: the last axis of the padded face grid cut into groups of `group`
         self.groups = (*self.n[:-1], -(-self.n[-1] // self.group))
+        self.spread = row_spread(ensemble * math.prod(self.n[:-1]))  # iterations a row in the row loops
         self.noise_scale = 1.0 / (dt * grid.cell_volume) ** 0.5  # 1/√(Δt V_c) of eq. (7)
         # the layer of upper boundary faces along each axis, member index first
         self.upper_layer = [(ensemble, *(1 if b == a else m for b, m in enumerate(self.n))) for a in range(self.dim)]
@@ -151,46 +152,47 @@ class SPDESolver(Fluxes, Solver):
         self.mass[None] = 0.0
         self.q_min[None] = self.real(ti.math.inf)
         self.n_negative[None] = 0
-        for e in range(self.ensemble):
-            q_left, root_left = self.real(0.0), self.real(0.0)  # cell i − 1 (old value) and its root
-            if ti.static(lo == PERIODIC):
-                q_left = self.q[e, n - 1]
-            elif ti.static(lo == DIRICHLET):
-                q_left = self.real(res_lo)
-            root_left = ti.sqrt(ti.max(q_left, self.real(0.0)))
-            F_left, F_first = self.real(0.0), self.real(0.0)  # fluxes of face i − 1 and face 0
-            mass, q_min, negative = 0.0, self.real(ti.math.inf), 0
-            # the key read once a member: read at each call (a field the stores to q might alias,
-            # for all LLVM knows) it cost 8 % of the step (benchmarks/RESULTS.md)
-            key = ti.math.uvec2(self.key[0], self.key[1])
-            for k in range((n + G) // G):  # faces 0 … n, G per Philox counter
-                bits = self._face_noise(ti.Vector([e, G * k]), step, key)
-                for g in ti.static(range(G)):
-                    i = G * k + g
-                    if i <= n:
-                        q_right = self.real(0.0)
-                        if i < n:
-                            q_right = self.q[e, i]
-                        elif ti.static(hi == DIRICHLET):
-                            q_right = self.real(res_hi)
-                        root_right = ti.sqrt(ti.max(q_right, self.real(0.0)))
-                        F = self.real(0.0)  # what a Neumann face carries
-                        if i == n and ti.static(hi == PERIODIC):
-                            F = F_first
-                        elif not ((i == 0 and ti.static(lo == NEUMANN)) or (i == n and ti.static(hi == NEUMANN))):
-                            F = self._flux(ti.Vector([0, i]), 0, q_left, q_right, root_left + root_right, bits[g])
-                        if i == 0:
-                            F_first = F
-                        else:  # eq. (9) for cell i − 1
-                            qn = q_left + self.real(self.dt) * ((F - F_left) * self.real(1.0 / self.grid.dx[0]))
-                            self.q[e, i - 1] = qn
-                            mass += ti.cast(qn, ti.f64)
-                            q_min = ti.min(q_min, qn)
-                            negative += ti.cast(qn < 0, ti.i32)
-                        q_left, root_left, F_left = q_right, root_right, F
-            self.mass[None] += mass * vol
-            ti.atomic_min(self.q_min[None], q_min)
-            self.n_negative[None] += negative
+        for e, s in ti.ndrange(self.ensemble, self.spread):  # `spread` iterations a member (grid.row_spread)
+            if s == 0:
+                q_left, root_left = self.real(0.0), self.real(0.0)  # cell i − 1 (old value) and its root
+                if ti.static(lo == PERIODIC):
+                    q_left = self.q[e, n - 1]
+                elif ti.static(lo == DIRICHLET):
+                    q_left = self.real(res_lo)
+                root_left = ti.sqrt(ti.max(q_left, self.real(0.0)))
+                F_left, F_first = self.real(0.0), self.real(0.0)  # fluxes of face i − 1 and face 0
+                mass, q_min, negative = 0.0, self.real(ti.math.inf), 0
+                # the key read once a member: read at each call (a field the stores to q might alias,
+                # for all LLVM knows) it cost 8 % of the step (benchmarks/RESULTS.md)
+                key = ti.math.uvec2(self.key[0], self.key[1])
+                for k in range((n + G) // G):  # faces 0 … n, G per Philox counter
+                    bits = self._face_noise(ti.Vector([e, G * k]), step, key)
+                    for g in ti.static(range(G)):
+                        i = G * k + g
+                        if i <= n:
+                            q_right = self.real(0.0)
+                            if i < n:
+                                q_right = self.q[e, i]
+                            elif ti.static(hi == DIRICHLET):
+                                q_right = self.real(res_hi)
+                            root_right = ti.sqrt(ti.max(q_right, self.real(0.0)))
+                            F = self.real(0.0)  # what a Neumann face carries
+                            if i == n and ti.static(hi == PERIODIC):
+                                F = F_first
+                            elif not ((i == 0 and ti.static(lo == NEUMANN)) or (i == n and ti.static(hi == NEUMANN))):
+                                F = self._flux(ti.Vector([0, i]), 0, q_left, q_right, root_left + root_right, bits[g])
+                            if i == 0:
+                                F_first = F
+                            else:  # eq. (9) for cell i − 1
+                                qn = q_left + self.real(self.dt) * ((F - F_left) * self.real(1.0 / self.grid.dx[0]))
+                                self.q[e, i - 1] = qn
+                                mass += ti.cast(qn, ti.f64)
+                                q_min = ti.min(q_min, qn)
+                                negative += ti.cast(qn < 0, ti.i32)
+                            q_left, root_left, F_left = q_right, root_right, F
+                self.mass[None] += mass * vol
+                ti.atomic_min(self.q_min[None], q_min)
+                self.n_negative[None] += negative
 
     @ti.kernel
     def _flux_step(self, step: ti.u32, n: ti.i32):
