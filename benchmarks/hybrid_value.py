@@ -19,9 +19,11 @@ so the ratios are taken with it off unless ``--kernels`` is given.
 
 ``--whole`` steps the hybrid and fv through the scene's whole run (a user pays for all of it:
 the region shrinks as the void fills) and prints the hybrid's cost per tenth of the run; the
-particle method and the plain walk are stepped for ``--particle-steps`` only, as their cost per
-step does not depend on the state (a fixed number of particles on a periodic grid: not so with
-Dirichlet sides, where the script says so).
+particle method and the plain walk take ``--particle-steps`` steps only, as their cost per step
+does not depend on the state (a fixed number of particles on a periodic grid: not so with
+Dirichlet sides, where the script says so), spread evenly over the hybrid's run: this VM's speed,
+the particle method's above all (memory-bound at 15 M particles), drifts by a third between runs
+minutes apart, so a ratio of figures taken at different times moved with it (26–34 for the same code).
 """
 import argparse
 import os
@@ -79,7 +81,8 @@ def _plain_walk(sc, count: float):
 
 
 def measure(solvers: dict, steps: int, short: int, prog) -> tuple[dict, dict, float, list]:
-    """Steps 1 … steps−1 of the hybrid and fv, 1 … short−1 of the others, alternating: wall seconds
+    """Steps 1 … steps−1 of the hybrid and fv, 1 … short−1 of the others (one every ``stride`` of the
+    hybrid's, so that their samples span the same stretch of time), alternating: wall seconds
     per solver, the hybrid's kernel tasks (seconds; ``prog`` None: not profiled), its mean particle
     count, and per tenth of the steps its (seconds, particle count sum, steps)."""
     hyb = solvers["hybrid"]
@@ -91,11 +94,14 @@ def measure(solvers: dict, steps: int, short: int, prog) -> tuple[dict, dict, fl
     tenths = [[0.0, 0.0, 0] for _ in range(10)]
     if prog:
         ti.profiler.clear_kernel_profiler_info()
+    stride = max(1, (steps - 1) // max(1, short - 1))  # the short ones spread over the run: the same machine load
+    taken = dict.fromkeys(solvers, 0)
     for n in range(1, steps):
         for m, s in solvers.items():
-            if n >= short and m in ("particle", "walk"):
+            if m in ("particle", "walk") and ((n - 1) % stride or taken[m] >= short - 1):
                 continue
-            dt = _timed(lambda: s.step(n))
+            taken[m] += 1
+            dt = _timed(lambda: s.step(taken[m]))
             wall[m] += dt
             if m == "hybrid":
                 if prog:
@@ -158,7 +164,7 @@ def report(args, ms, kernels, mean_n, n_walk, solvers, first, t_first, tenths) -
     walk_ms = ms["walk"] * mean_n / n_walk  # per particle, at the hybrid's mean count
     print(f"# {args.scene} {' '.join(args.set)}: {time.strftime('%Y-%m-%d %H:%M')}, {cpu_model()}, "
           f"{args.arch}, {args.threads} threads, steps 1-{steps} (particle method and plain walk 1-"
-          f"{args.particle_steps - 1}; step 0 apart), load average {os.getloadavg()[0]:.1f}\n")
+          f"{args.particle_steps - 1}, spread over those; step 0 apart), load average {os.getloadavg()[0]:.1f}\n")
     print("| | ms/step |\n|---|---|")
     print(f"| hybrid | {ms['hybrid']:.2f} |")
     for k, v in solvers["hybrid"].timing.items():
