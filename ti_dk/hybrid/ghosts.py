@@ -195,13 +195,14 @@ class Sampler:
 
     @ti.kernel
     def cover(self, pool: ti.template(), cur: ti.i32, step: ti.i32, tilt_on: ti.i32, scratch: ti.template(),
-              cells: ti.types.ndarray(dtype=ti.i32, ndim=1), n_new: ti.i32, n_gone: ti.i32):
+              cells: ti.types.ndarray(dtype=ti.i32, ndim=1), n_new: ti.i32, n_gone: ti.i32, mark: ti.i32):
         """Move the region by the cells :meth:`Region.stage` listed in ``cells`` (flat indices: the
         ``n_new`` it gains, then the ``n_gone`` it loses): sample the newly covered cells (birth
-        ``step | REGRID_BIRTH``), whose q becomes N / V_c. Loops over the listed cells, not the
-        grid (the work follows the region, as an extension's should). ``scratch`` (i32 per cell,
-        zero) holds the counts until every tilt has read q. Where the region loses cells,
-        :meth:`mark_covered` then marks the particles to keep."""
+        ``step | REGRID_BIRTH``), whose q becomes N / V_c, and with ``mark`` mark to keep the
+        particles still covered (a region that only grows keeps them all: the caller then skips
+        the marks, a pass over every particle). Loops over the listed cells, not the grid (the
+        work follows the region, as an extension's should). ``scratch`` (i32 per cell, zero) holds the
+        counts until every tilt has read q."""
         vol = ti.static(self.grid.cell_volume)
         covered, shape = ti.static(self.region.covered, self.region.covered.shape)
         self.need[None] = 0
@@ -221,14 +222,7 @@ class Sampler:
                 covered[J] = ti.u8(1)
             else:
                 covered[J] = ti.u8(0)
-
-    @ti.kernel
-    def mark_covered(self, pool: ti.template(), cur: ti.i32):
-        """Mark to keep the particles of buffer ``cur`` that lie in covered cells (after :meth:`cover`).
-        A kernel of its own: a region that only grows (every extension) keeps them all, and a
-        parallel loop costs its ~90 µs even when it runs no iteration (``benchmarks/RESULTS.md``)."""
-        covered = ti.static(self.region.covered)
-        for u in range(pool.units(cur)):
+        for u in range(pool.units(cur) * mark):
             e, U, lo, hi = pool.unit(cur, u)
             for p in range(lo, hi):
                 I = pool.index(cur, U, p)

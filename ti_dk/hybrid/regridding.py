@@ -78,9 +78,7 @@ class Regridding:
         # the SPDE content the newly covered cells held, summed here: the same bits on any thread count
         self._removed = float(ppc.reshape(-1)[cells[:n_new]].sum())
         self.sampler.cover(self.pool, self.cur, n * self.substeps, self._tilt_on(n), self.coupling.count,
-                           cells, n_new, n_gone)
-        if sort or n_gone:
-            self.sampler.mark_covered(self.pool, self.cur)
+                           cells, n_new, n_gone, int(sort or n_gone > 0))
         if sort:
             self.coupling.sort(self.pool, self.cur)
             self.cur = 1 - self.cur
