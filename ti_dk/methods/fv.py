@@ -115,7 +115,7 @@ class SPDESolver(Fluxes, Solver):
         if self.dim == 1 and not self.track_mean:
             self._step_members(n)
         else:
-            self._flux_step(n, self.n[-1])
+            self._flux_step(n, self.n[-1], True)
 
     def state(self) -> dict[str, np.ndarray]:
         """The fields a checkpoint needs to continue bit for bit."""
@@ -194,14 +194,21 @@ class SPDESolver(Fluxes, Solver):
                 ti.atomic_min(self.q_min[None], q_min)
                 self.n_negative[None] += negative
 
+    def advance(self, n: int) -> None:
+        """:meth:`fluxes` then :meth:`update` for step ``n``, in one kernel, without the diagnostics
+        (the hybrid's step, which counts them after its synchronisation): one launch, not two."""
+        self._flux_step(n, self.n[-1], False)
+
     @ti.kernel
-    def _flux_step(self, step: ti.u32, n: ti.i32):
-        """:meth:`fluxes`, :meth:`update` and :meth:`diagnose` as one kernel: a launch costs tens
-        of µs, a sizeable share of a 2D step on two threads (``benchmarks/RESULTS.md``)."""
+    def _flux_step(self, step: ti.u32, n: ti.i32, diagnosing: ti.template()):
+        """:meth:`fluxes`, :meth:`update` and (``diagnosing``) :meth:`diagnose` as one kernel: a
+        launch costs tens of µs, a sizeable share of a 2D step on two threads
+        (``benchmarks/RESULTS.md``)."""
         self.inflow[None] = 0.0
-        self.zero_diagnostics()
+        if ti.static(diagnosing):
+            self.zero_diagnostics()
         self._make_fluxes(step)
-        self._apply(True, n)
+        self._apply(diagnosing, n)
 
     @ti.kernel
     def diagnose(self):
