@@ -147,7 +147,7 @@ def test_the_mean_follows_the_drift_scheme_face_by_face(cells, boundary):
 
 @pytest.mark.parametrize("boundary", [[["dirichlet", "neumann"]], "periodic"])
 def test_the_fused_1d_step_carries_the_same_drift(boundary):
-    """fv's per-member 1D kernel and the flux/update kernels the hybrid calls, with a potential:
+    """fv's per-member 1D kernel and the hybrid's ``advance``, with a potential:
     the same states to a few ulp (fast-math may fold the constants of each differently)."""
     from ti_dk.methods.fv import SPDESolver
     from ti_dk.core.rng import seed_key
@@ -160,6 +160,5 @@ def test_the_fused_1d_step_carries_the_same_drift(boundary):
     for n in range(20):
         b.q.from_numpy(a.q.to_numpy())
         a.step(n)
-        b.fluxes(n)
-        b.update()
+        b.advance(n)
         np.testing.assert_allclose(a.q.to_numpy(), b.q.to_numpy(), rtol=1e-12, atol=1e-9)

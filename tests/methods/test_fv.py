@@ -128,7 +128,7 @@ def test_same_seed_same_bits_on_one_and_two_threads():
 
 @pytest.mark.parametrize("boundary", ["periodic", [["dirichlet", "neumann"]], [["neumann", "dirichlet"]]])
 def test_fused_1d_step_equals_the_three_kernel_step(boundary):
-    """The per-member 1D step and the flux/update/diagnose kernels the hybrid calls give the same bits,
+    """The per-member 1D step and the hybrid's step (``advance``, then ``diagnose``) give the same bits,
     except next to an upper Dirichlet face: there the fused kernel sees the reservoir density as a
     constant and LLVM's fast-math folds ``(ρ − q)/2Δx`` differently (measured: 1 ulp in the last
     cell, now and then), so those cells are held to 4 ulp."""
@@ -140,8 +140,7 @@ def test_fused_1d_step_equals_the_three_kernel_step(boundary):
     for n in range(20):
         b.q.from_numpy(a.q.to_numpy())  # one step from the same state (a 1-ulp difference would grow)
         a.step(n)
-        b.fluxes(n)
-        b.update()
+        b.advance(n)
         b.diagnose()
         qa, qb = a.q.to_numpy(), b.q.to_numpy()
         if boundary == [["neumann", "dirichlet"]]:
@@ -170,8 +169,7 @@ def test_mean_density_follows_the_discrete_heat_equation(cells, boundary):
     s.initialize(ppc)
     q = ppc / grid.cell_volume
     for n in range(6):
-        s.fluxes(n)
-        s.update()
+        s.advance(n)
         q = fv_mean_step(q, grid.dx, dt, [tuple(b) for b in boundary], grid.reservoir)
     np.testing.assert_allclose(s.qbar.to_numpy()[0], q, rtol=1e-12, atol=0)
 
@@ -210,10 +208,8 @@ def test_replaced_cells_change_no_other_cell_or_face(cells, boundary):
         q0 = a.q.to_numpy()
         b.q.from_numpy(q0)
         b.flux.from_numpy(np.full(b.flux.shape + (d,), np.nan))
-        a.fluxes(n)
-        a.update()
-        b.fluxes(n)
-        b.update()
+        a.advance(n)
+        b.advance(n)
         qa, qb = a.q.to_numpy(), b.q.to_numpy()
         assert np.array_equal(qa[~mask], qb[~mask]) and np.array_equal(qb[mask], q0[mask])
         fa, fb = a.flux.to_numpy(), b.flux.to_numpy()

@@ -88,7 +88,7 @@ def row_spread(rows: int) -> int:
     cfg = ti.lang.impl.current_cfg()
     if cfg.arch != ti.cpu or cfg.cpu_max_num_threads < 2:
         return 1
-    return max(1, -(-512 * cfg.cpu_max_num_threads // max(rows, 1)))
+    return -(-512 * cfg.cpu_max_num_threads // max(rows, 1))
 
 
 @ti.func

@@ -11,9 +11,10 @@ from ..core.grid import DIRICHLET, NEUMANN, PERIODIC, across, face_kind
 
 @ti.data_oriented
 class Fluxes:
-    r"""The kernels of one finite-volume step on every member: :meth:`fluxes` makes the face fluxes
-    of eq. (8) (the noise keyed on seed, member, step and face), :meth:`update` applies eq. (9)
-    (and eq. 10 for q̄). The fields they use are made by :class:`~.fv.SPDESolver`."""
+    r"""The two parts of one finite-volume step on every member, as the loops that
+    :class:`~.fv.SPDESolver`'s kernels run: :meth:`fluxes` makes the face fluxes of eq. (8) (the
+    noise keyed on seed, member, step and face), :meth:`update` applies eq. (9) (and eq. 10 for
+    q̄). The fields they use are made by :class:`~.fv.SPDESolver`."""
 
     @ti.func
     def _pair(self, f: ti.template(), J, a: ti.template(), reservoir: ti.template()):
@@ -130,20 +131,15 @@ class Fluxes:
                 self.inflow[None] += ti.cast(F, ti.f64) * area
         return F
 
-    # -- the split step (public: the hybrid runs its particles between these) ------------
-    @ti.kernel
-    def fluxes(self, step: ti.u32):
-        """First part of step ``step``: every face flux F of eq. (8) into :attr:`flux`, and the
-        Dirichlet inflow they carry into :attr:`inflow`; q is not changed. Noise keyed on (seed,
-        member, ``step``, face). With q̄, also the right-hand side of eq. (10) into :attr:`dqbar`,
-        made at each cell from q̄'s fluxes through both its faces per axis (a scalar per cell
-        where a field of face fluxes would take ``dim`` values, with the same bits)."""
-        self.inflow[None] = 0.0
-        self._make_fluxes(step)
-
+    # -- the two parts of a step (one kernel: SPDESolver._flux_step) --------------------------
     @ti.func
-    def _make_fluxes(self, step):
-        """The loops of :meth:`fluxes` (the caller zeroes :attr:`inflow`)."""
+    def fluxes(self, step):
+        """First part of step ``step``: every face flux F of eq. (8) into :attr:`flux`, and the
+        Dirichlet inflow they carry added to :attr:`inflow` (zeroed by the caller); q is not
+        changed. Noise keyed on (seed, member, ``step``, face). With q̄, also the right-hand side
+        of eq. (10) into :attr:`dqbar`, made at each cell from q̄'s fluxes through both its faces
+        per axis (a scalar per cell where a field of face fluxes would take ``dim`` values, with
+        the same bits)."""
         if ti.static(self.gaussian):
             for J in ti.grouped(self.root):  # q̄'s square roots, once per cell
                 self.root[J] = ti.sqrt(ti.max(self.qbar[J], self.real(0.0)))
@@ -218,19 +214,11 @@ class Fluxes:
             dq += (self.flux[self.upper(J, a)][a] - self.flux[J][a]) * self.real(1.0 / self.grid.dx[a])
         return dq
 
-    def update(self):
-        r"""Second part: eq. (9), :math:`q_I \mathrel{+}= Δt \sum_a (F_{I+½e_a} - F_{I-½e_a}) / Δx_a`,
-        with the fluxes of the last :meth:`fluxes` (and eq. 10 for q̄, in the same loop: one
-        parallel task, see :func:`grid.exclusive_scan`)."""
-        self._update(self.n[-1])
-
-    @ti.kernel
-    def _update(self, n: ti.i32):
-        self._apply(False, n)
-
     @ti.func
-    def _apply(self, diagnosing: ti.template(), n):
-        """:meth:`update`, a row along the last axis (``n`` cells) per working iteration of the
+    def update(self, diagnosing: ti.template(), n):
+        r"""Second part: eq. (9), :math:`q_I \mathrel{+}= Δt \sum_a (F_{I+½e_a} - F_{I-½e_a}) / Δx_a`,
+        with the fluxes of :meth:`fluxes` (and eq. 10 for q̄, in the same loop: one parallel task).
+        A row along the last axis (``n`` cells) per working iteration of the
         parallel loop (:attr:`spread` iterations a row); with ``diagnosing``, also the sums of
         :meth:`~.fv.SPDESolver.diagnose` (zeroed by the caller) of the new q, one atomic per row.
         ``n`` is an argument, not a constant: LLVM unrolled a short constant row fully and (fast

@@ -207,8 +207,8 @@ class SPDESolver(Fluxes, Solver):
         self.inflow[None] = 0.0
         if ti.static(diagnosing):
             self.zero_diagnostics()
-        self._make_fluxes(step)
-        self._apply(diagnosing, n)
+        self.fluxes(step)
+        self.update(diagnosing, n)
 
     @ti.kernel
     def diagnose(self):

@@ -224,8 +224,7 @@ class ParticlePool:
                     if not self.keep[e, p]:
                         t = self.tail[e, r]
                         self.x[b, e, p] = self.x[b, e, t]
-                        if ti.static(self.ids):
-                            self.pid[b, e, p] = self.pid[b, e, t]
+                        self.pid[b, e, p] = self.pid[b, e, t]  # (a pool compacts only with ids)
                         r += 1
 
     @ti.kernel
