@@ -331,6 +331,11 @@ def _drift(scene: Scene) -> tuple[float, float]:
     return stability_number(grid, scene.dt, coef), clamp
 
 
+def stability_limit(scene: Scene) -> float:
+    """The explicit FV scheme's limit on C on the scene's grid, with its potential: stable below it."""
+    return scene.time.C / (scene.stability_number if scene.potential is None else _drift(scene)[0])
+
+
 def _check_time_step(scene: Scene) -> None:
     number, clamp = (scene.stability_number, scene.clamp_probability) if scene.potential is None else _drift(scene)
     limit = scene.time.C / number
@@ -347,12 +352,8 @@ def _check_time_step(scene: Scene) -> None:
             f"particle births in 27 bits: give fewer than {HYBRID_STEP_LIMIT:,} (shorter t_end, larger C or fewer "
             "particle_substeps)")
     if scene.method.name in ("particle", "hybrid") and clamp > CLAMP_WARN:
-        warnings.warn(
-            f"C = {scene.time.C}: a particle step is clamped to ±Δx with probability {clamp:.2g} "
-            f"per axis and step (> {CLAMP_WARN:g}); lower C to make clamping rare",
-            ClampWarning,
-            stacklevel=3,
-        )
+        warnings.warn(f"C = {scene.time.C}: a particle step is clamped to ±Δx with probability {clamp:.2g} per axis "
+                      f"and step (> {CLAMP_WARN:g}); lower C to make clamping rare", ClampWarning, stacklevel=3)
 
 
 # ---------------------------------------------------------------------------------------
