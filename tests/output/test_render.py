@@ -115,8 +115,8 @@ def test_colour_range_and_time_label():
     assert colour_max(np.array([4.0])) == 10.0
     assert colour_max(np.zeros(3)) == 1.0
     assert colour_max(np.array([30.0]), [40.0, 0.0]) == 60.0  # a 40-per-cell reservoir: 40 + 3√40 = 59.0
-    assert time_label(0.00096035) == r"$t = 9.60\times10^{-4}\ L^2/2D$"
-    assert time_label(0.0) == r"$t = 0\ L^2/2D$" and time_label(2.5) == r"$t = 2.50\ L^2/2D$"
+    assert time_label(0.00096035) == r"$t = 9.60\times10^{-4}\ L^2/(2D)$"
+    assert time_label(0.0) == r"$t = 0\ L^2/(2D)$" and time_label(2.5) == r"$t = 2.50\ L^2/(2D)$"
 
 
 
@@ -290,15 +290,87 @@ def _has(module):
     return True
 
 
-def test_a_potential_is_drawn_as_faint_contours_in_2d():
-    """Issue 28: U's contours, 2 to 12 k_BT above its least value, over each 2D panel (and drawn
-    in every frame: they go with the artists drawn over the cached picture); none without U."""
+def test_a_potential_is_drawn_as_contours_labelled_with_their_k_bt_in_2d():
+    """U's contours, 2 to 12 k_BT above its least value, over each 2D panel, each labelled with its
+    k_BT (contours and labels drawn in every frame: they go with the artists drawn over the cached
+    picture); none without U."""
     from matplotlib.contour import ContourSet
+    from matplotlib.text import Text
 
     def contours(scene):
         r = Renderer.of(scene, compared=True)
-        return [[a for a in r.lines[m][0] if isinstance(a, ContourSet)] for m in range(r.rows)]
+        return [[a for a in r.lines[m][0] if isinstance(a, (ContourSet, Text))] for m in range(r.rows)]
 
     with_u = contours(load_scene("doublewell2d", cells=[16, 16], C=0.008))
-    assert all(len(c) == 1 and len(c[0].levels) == 6 and c[0].get_animated() for c in with_u)
+    for drawn in with_u:
+        (cs,), labels = [a for a in drawn if isinstance(a, ContourSet)], [a for a in drawn if isinstance(a, Text)]
+        u0 = min(cs.levels) - 2  # U = 2 (x-0.3)^2 (x-0.7)^2 + ... / 5e-4 on the cell centres
+        assert list(np.round(cs.levels - u0, 9)) == [2, 4, 6, 8, 10, 12] and cs.get_animated()
+        kts = {t.get_text() for t in labels}
+        assert kts <= {rf"${k}\,k_BT$" for k in (2, 4, 6, 8, 10, 12)} and len(kts) >= 4, kts
+        assert all(t.get_animated() for t in labels)
     assert contours(load_scene("ellipse2d", cells=[16, 16])) == [[], []]
+
+
+def test_log_colour_scale_maps_decades_and_keeps_negative_cells_white():
+    """color_scale = "log": equal steps in log density are equal steps of colour, 0 to the floor takes
+    the lowest colour, and negative cells stay white."""
+    n, vmax = 32, 1000.0
+    r = Renderer((n, n), (1.0, 1.0), 1, vmax, "test", log=True)
+    ppc = np.full((n, n), 10.0)
+    ppc[4, 4], ppc[8, 8], ppc[12, 12], ppc[16, 16], ppc[20, 20] = 1.0, 100.0, 0.0, -3.0, 0.05
+    img = r.frame(0.0, [Panel("fv", ppc)]).astype(int)
+    assert r.norm.vmin == 0.1 and r.norm.vmax == vmax
+    for (i, j), v in (((4, 4), 1.0), ((8, 8), 100.0), ((2, 2), 10.0), ((12, 12), 0.1), ((20, 20), 0.1)):
+        frac = (np.log10(v) + 1) / 4  # 0.1 to 1000: four decades
+        assert np.abs(_cell(r, img, i, j, n) - _rgb(VIRIDIS(frac))).max() <= 2, (i, j)
+    assert np.all(_cell(r, img, 16, 16, n) == 255)
+    assert Renderer.of(load_scene("doublewell2d", cells=[16, 16], C=0.008)).log  # the scene asks for it
+    assert not Renderer.of(load_scene("ellipse2d", cells=[16, 16])).log
+
+
+FRAME_CELLS = {1: None, 2: [16, 16], 3: [8, 8, 8]}  # small grids: the layout is the same at any size
+
+
+@pytest.mark.parametrize("name", ["doublewell2d", "ellipse2d", "equilibrium1d", "sphere3d", "trap1d", "void1d",
+                                  "doublewell2d linear"])
+def test_no_text_of_any_shipped_scenes_frame_leaves_the_figure(name, monkeypatch):
+    """Every text drawn in a frame (titles, tick labels, the colour bar's label, side labels, contour
+    labels) lies inside the figure: its window extent inside the figure's box."""
+    from matplotlib.text import Text
+    from ti_dk.output.profiles import ProfileRenderer
+    from ti_dk.scene.load import available_scenes
+
+    assert set(available_scenes()) <= {"doublewell2d", "ellipse2d", "equilibrium1d", "sphere3d", "trap1d", "void1d"}
+    scene_name, *scale = name.split()  # "linear": the issue's frame, on the scene's 64x64 (up to 1,070 per cell)
+    dim = load_scene(scene_name).grid.dim
+    extra = dict(C=0.008) if scene_name == "doublewell2d" else {}  # stable on 16x16
+    sc = load_scene(scene_name, **extra, **({"cells": FRAME_CELLS[dim]} if FRAME_CELLS[dim] and not scale else {}),
+                    **({"color_scale": scale[0]} if scale else {}))
+    drawn = []
+    draw = Text.draw
+
+    def recording(self, renderer):
+        draw(self, renderer)
+        if self.get_visible() and self.get_text():
+            drawn.append((self, renderer))
+
+    monkeypatch.setattr(Text, "draw", recording)
+    ppc = sc.initial_ppc
+    if dim == 1:
+        r = ProfileRenderer(sc)
+        v = sc.grid.cell_volume
+        row = dict(mean=ppc / v, variance=ppc / v**2, skewness=1 / np.sqrt(ppc + 1), kurtosis=3 + 1 / (ppc + 1),
+                   n_samples=sc.method.ensemble)
+        r.frame(sc.time.t_end, row, np.where(ppc < ppc.mean(), 1.0, 0.0))
+        fig = r.fig
+    else:
+        r = Renderer.of(sc, compared=sc.method.compare is not None)
+        box = [(tuple(0 for _ in sc.grid.cells), tuple(n // 2 for n in sc.grid.cells))]
+        r.frame(sc.time.t_end, [Panel(sc.method.name, ppc, box)] + [Panel(sc.method.compare, ppc)] * (r.rows - 1))
+        fig = r.fig
+    W, H = fig.bbox.width, fig.bbox.height
+    assert len(drawn) > 10
+    out = [(t.get_text(), e.bounds) for t, ren in drawn for e in [t.get_window_extent(ren)]
+           if e.x0 < -0.5 or e.y0 < -0.5 or e.x1 > W + 0.5 or e.y1 > H + 0.5]
+    assert not out, (W, H, out)

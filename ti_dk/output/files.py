@@ -103,7 +103,7 @@ class RunFile:
     (non-excess: 3 for a Gaussian) are dimensionless; histograms and frames count particles per
     cell. Diagnostics and regrid records are sums over the ensemble's members (``min_density``
     is the minimum over members and cells): ``diagnostics/mass`` is in particles summed over
-    members. Times are in L²/2D.
+    members. Times are in L²/(2D).
 
     Ensemble-only: ``variance``, ``skewness`` and ``kurtosis`` need two or more densities per
     row, so a run of one member without time pooling (``t_equil`` unset) writes only ``mean``

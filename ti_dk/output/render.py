@@ -8,19 +8,20 @@ number density of the run file's ``/stats``: a frame counts particles), drawn ce
 default (:func:`colour_max`) three Poisson standard deviations above the largest density the
 run starts from or is fed by (initial condition, Dirichlet reservoirs), so the bulk's
 fluctuations show and nothing the run's mean can reach saturates; the scene key ``color_max``
-sets it. Denser cells take the top colour (the colour bar's upper arrow) and negative cells are
-white (its lower arrow), exactly one cell in size at any resolution.
+sets it. ``color_scale = "log"`` draws ``[LOG_FLOOR, vmax]`` on a log scale instead (a few
+particles leaking beside a thousand per cell show), 0 to ``LOG_FLOOR`` in its lowest colour.
+Denser cells take the top colour (the colour bar's upper arrow) and negative cells are white (its
+lower arrow), exactly one cell in size at any resolution.
 
 The particle region (the union of the hybrid's boxes; the cell mask's outline) is outlined in
 black inside a white line, visible on every colour, its Berger–Rigoutsos boxes inside it as thin
 red lines (``BOX``), a hole in it (uncovered cells no path of face neighbours outside the region
 links to the domain's edge, :func:`holes`) by a dotted black line on white. Each side is labelled
 with its boundary kind (:func:`side_labels`). 2D: one panel per method side by side (the paper's
-Figs. 5–6), an external potential's contours faint white, every 2 k_BT up to 12 above its least
-value. 3D: one row per method of three mid-plane slices (xy, xz, yz) and a ray-marched volume
-rendering (a Taichi kernel) of translucent shells of equal density; the particle region is a
-translucent red hull (paper Figs. 7–8). Lengths are in the scene's length unit L, times in L²/2D
-(the code's units: D = ½).
+Figs. 5–6), an external potential's contours in white, every 2 k_BT up to 12 above its least
+value, each labelled with its k_BT. 3D: one row per method of three mid-plane slices (xy, xz, yz)
+and a volume rendering (:class:`ti_dk.output.volume.Volume`). Lengths are in the scene's length
+unit L, times in L²/(2D) (the code's units: D = ½).
 """
 
 import math
@@ -30,22 +31,22 @@ from pathlib import Path
 import imageio.v3 as iio
 import matplotlib
 import numpy as np
-import taichi as ti
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.collections import LineCollection
-from matplotlib.colors import Normalize
+from matplotlib.colors import LogNorm, Normalize
 from matplotlib.figure import Figure
 
 from .files import frame_file
+from .volume import HULL_RGB, Volume
 from ..hybrid.regrid import mask as region_mask
 
 DPI = 100  # figure pixels per inch: sizes below are in pixels
-LEFT, GAP, TOP, ROW_HEAD, BOTTOM, BAR = 56, 62, 34, 22, 42, 74  # layout [pixels]
+LEFT, GAP, TOP, ROW_HEAD, BOTTOM, BAR = 56, 62, 34, 22, 42, 84  # layout [pixels]
 OUTLINE = [dict(color="white", lw=2.6, capstyle="projecting"), dict(color="black", lw=1.0, capstyle="projecting")]
 HOLE = [dict(color="white", lw=2.2, capstyle="butt"), dict(color="black", lw=1.2, linestyle=(0, (1.2, 1.2)))]
-BOX = dict(color=(0.95, 0.35, 0.25), lw=0.8)  # the region's boxes: thin red lines (the 3D hull's colour)
-VIEW = (35.0, 25.0)  # volume rendering: azimuth and elevation of the viewer [degrees]
-HULL_RGB = BOX["color"]  # volume rendering: colour of the particle region's translucent hull
+BOX = dict(color=HULL_RGB, lw=0.8)  # the region's boxes: thin red lines (the 3D hull's colour)
+LOG_FLOOR = 0.1  # particles per cell: the bottom of a log colour scale (0 to it: the lowest colour)
+POTENTIAL_KT = tuple(range(2, 13, 2))  # U's contours: these many k_BT above its least value
 
 
 @dataclass
@@ -73,15 +74,15 @@ def colour_max(ppc0: np.ndarray, reservoirs=()) -> float:
 
 
 def time_label(t: float) -> str:
-    """``t = 9.60×10⁻⁴ L²/2D``: three significant digits and the unit (mathtext)."""
+    """``t = 9.60×10⁻⁴ L²/(2D)``: three significant digits and the unit (mathtext)."""
     if t == 0:
-        return r"$t = 0\ L^2/2D$"
+        return r"$t = 0\ L^2/(2D)$"
     e = math.floor(math.log10(abs(t)))
     m = t / 10.0**e
     if round(m, 2) >= 10:
         m, e = m / 10, e + 1
     body = f"{m:.2f}" if e == 0 else rf"{m:.2f}\times10^{{{e}}}"
-    return rf"$t = {body}\ L^2/2D$"
+    return rf"$t = {body}\ L^2/(2D)$"
 
 
 def canvas_rgb(fig: Figure) -> np.ndarray:
@@ -160,7 +161,8 @@ class Renderer:
     (:func:`side_labels`; None: none); ``dense``: 3D, the largest initial density that the volume
     rendering's shell levels are fractions of (None: m with m + 3√m = vmax); ``potential``: U."""
 
-    def __init__(self, cells, lengths, rows: int, vmax: float, title: str, sides=None, dense=None, potential=None):
+    def __init__(self, cells, lengths, rows: int, vmax: float, title: str, sides=None, dense=None, potential=None,
+                 log: bool = False):
         self.cells, self.lengths = tuple(int(n) for n in cells), tuple(float(v) for v in lengths)
         self.dim, self.rows, self.vmax, self.title = len(self.cells), rows, float(vmax), title
         self.sides, self.potential = sides, potential  # U(x, y) drawn faintly in 2D (None: none)
@@ -169,11 +171,12 @@ class Renderer:
         target = 512 if self.dim == 2 else 256  # pixels along the longest side of a panel
         self.s = max(1, target // max(round(L / min(self.dx)) for L in self.lengths))  # pixels per finest cell
         self.ppu = self.s / min(self.dx)  # pixels per unit length
-        self.cmap = matplotlib.colormaps["viridis"].with_extremes(under="white")
-        self.norm = Normalize(0.0, self.vmax)
+        self.cmap = matplotlib.colormaps["viridis"].with_extremes(under="white", bad="white")  # log: < 0 is "bad"
+        self.log = log
+        self.norm = LogNorm(min(LOG_FLOOR, self.vmax / 10), self.vmax) if log else Normalize(0.0, self.vmax)
         if self.dim == 3:
             self.planes = (((0, 1), 2), ((0, 2), 1), ((1, 2), 0))  # (shown axes, cut axis)
-            self.volume = Volume(self.cells, self.cmap, self.vmax, m)
+            self.volume = Volume(self.cells, self.cmap, self.norm, m)
         else:
             self.planes = (((0, 1), None),)
         self._layout()
@@ -182,7 +185,7 @@ class Renderer:
     def of(cls, scene, compared: bool = False) -> "Renderer":
         """The frames of a 2D or 3D ``scene`` (with ``compared``, its ``compare`` method beside or
         below): colour range ``color_max``, or if 0 :func:`colour_max` of the initial density and the
-        Dirichlet reservoirs; each side labelled with its boundary kind."""
+        Dirichlet reservoirs, on the scale ``color_scale``; each side labelled with its boundary kind."""
         g, m = scene.grid, scene.method
         methods = m.name + (f" (left) and {m.compare} (right)" if compared and g.dim == 2 else
                             f" (top) and {m.compare} (bottom)" if compared else "")
@@ -190,7 +193,8 @@ class Renderer:
         vmax = scene.output.color_max or colour_max(ppc0, dirichlet_ppc(g.boundary, g.reservoir_ppc))
         return cls(g.cells, g.lengths, 1 + compared, vmax,
                    f"{scene.name}: {methods}, {'×'.join(map(str, g.cells))} cells, member 0",
-                   side_labels(g.boundary, g.reservoir_ppc), float(np.max(ppc0)), scene.potential)
+                   side_labels(g.boundary, g.reservoir_ppc), float(np.max(ppc0)), scene.potential,
+                   scene.output.color_scale == "log")
 
     # -- layout (once) ------------------------------------------------------------------
     def _size(self, axes) -> tuple[int, int]:
@@ -259,15 +263,26 @@ class Renderer:
         ax.tick_params(labelsize=8, length=3, pad=2)
         if self.sides is not None:
             self._side_labels(ax, a, b)
-        if self.potential is not None and self.dim == 2:  # U's contours, after the 5 lines that _slices sets
-            x, y = ((np.arange(n) + 0.5) * h for n, h in zip(self.cells, self.dx))
-            u = self.potential(x[:, None], y[None, :])
-            if levels := [v for v in np.min(u) + np.arange(2, 13, 2) if v < np.max(u)]:  # none: a flat U
-                lines.append(ax.contour(x, y, u.T, levels=levels, colors="white", linewidths=0.5, alpha=0.35))
+        if self.potential is not None and self.dim == 2:
+            lines += self._contours(ax)
         if cut is not None:
             c = (self.cells[cut] // 2 + 0.5) * self.dx[cut]
             ax.set_title(f"{names[a]}{names[b]} slice, {names[cut]} = {c:.3g} L", fontsize=9)
         return image, lines
+
+    def _contours(self, ax) -> list:
+        """U's contours ``POTENTIAL_KT`` k_BT above its least value on the grid, in white, each
+        labelled with its k_BT (none for a flat U): the contour set and its labels, drawn over the
+        density after the 5 lines that :meth:`_slices` sets."""
+        x, y = ((np.arange(n) + 0.5) * h for n, h in zip(self.cells, self.dx))
+        u = self.potential(x[:, None], y[None, :])
+        u0 = float(np.min(u))
+        levels = [u0 + k for k in POTENTIAL_KT if u0 + k < np.max(u)]
+        if not levels:
+            return []
+        cs = ax.contour(x, y, u.T, levels=levels, colors="white", linewidths=0.6, alpha=0.55)
+        labels = ax.clabel(cs, fontsize=7, colors="white", fmt=lambda v: rf"${v - u0:.0f}\,k_BT$")
+        return [cs, *labels]
 
     def _side_labels(self, ax, a: int, b: int):
         """Each side's boundary kind at the ends of the axis labels' lines: the lower and upper
@@ -289,7 +304,7 @@ class Renderer:
         self.bar_pixels = (self.width - BAR + 6, round((1 - y1) * H), 14, round((y1 - y0) * H))
         sm = matplotlib.cm.ScalarMappable(self.norm, self.cmap)
         cb = self.fig.colorbar(sm, cax=cax, extend="both", extendfrac=0.04)
-        cb.set_label("particles per cell (white: < 0)", fontsize=9)
+        cb.set_label(f"particles per cell{', log scale' * self.log} (white: < 0)", fontsize=9)
         cax.tick_params(labelsize=8)
 
     def _mark_dynamic(self):
@@ -356,6 +371,8 @@ class Renderer:
         any_hole = False
         for k, ((a, b), cut) in enumerate(self.planes):
             plane = ppc if cut is None else np.take(ppc, mids[cut], axis=cut)
+            if self.log:  # LogNorm draws values <= 0 white ("bad"): 0 to the floor take the lowest colour
+                plane = np.where(plane < 0, plane, np.maximum(plane, self.norm.vmin))
             self.images[r][k].set_data(plane.T)
             segs = [np.zeros((0, 2, 2))] * 3  # boxes, the region's outer edge, its holes' edges
             if region is not None:
@@ -378,99 +395,6 @@ class Renderer:
         for artist in self.dynamic:
             self.fig.draw_artist(artist)
         return np.asarray(canvas.buffer_rgba())[..., :3].copy()
-
-
-@ti.data_oriented
-class Volume:
-    """Ray-marched volume rendering (orthographic, seen from ``VIEW``): translucent shells of equal
-    density.
-
-    The density is first averaged over 3³ cells (so the bulk's cell-to-cell noise draws no
-    shells); each ray, sampled once per cell length, composites front to back ``C += T a c``,
-    ``T ← T (1 − a)``: where it crosses one of the ``LEVELS`` (fractions of the largest initial
-    density m) a shell in that level's colour of the colour bar, shaded by its normal (the
-    averaged density's gradient), with opacity ``SHELL``; where it crosses the particle region's
-    boundary ``HULL_RGB`` with opacity ``HULL`` (a translucent hull); in a negative cell (of the
-    unaveraged density) white with opacity ``NEGATIVE``. The void shows as nested shells, a denser
-    blob inside it as a shell of its own, and what has filled in as shells moving inwards.
-    """
-
-    LEVELS, SHELL, HULL, NEGATIVE = (0.25, 0.6), 0.3, 0.15, 0.5
-
-    def __init__(self, cells, cmap, vmax: float, dense: float):
-        self.cells = tuple(cells)
-        self.vmax = float(vmax)
-        self.levels = [f * dense for f in self.LEVELS]  # fractions of the largest initial density
-        self.lut = ti.Vector.field(3, ti.f64, shape=256)  # colormap table
-        self.lut.from_numpy(cmap(np.linspace(0, 1, 256))[:, :3])
-        self.img = None  # RGB [0, 1], (size, size): allocated at the first call
-        az, el = (math.radians(v) for v in VIEW)
-        self.F = np.array([math.cos(el) * math.cos(az), math.cos(el) * math.sin(az), math.sin(el)])  # to the viewer
-        self.R = np.array([-math.sin(az), math.cos(az), 0.0])
-        self.U = np.cross(self.F, self.R)
-        self.shape = np.array(self.cells, dtype=float) / max(self.cells)  # the box, longest side 1
-
-    def project(self, p, size: int) -> tuple[float, float]:
-        """Pixel (column, row) of the point ``p`` given as a fraction of each side."""
-        d = np.asarray(p) * self.shape - 0.5 * self.shape
-        return (d @ self.R + 0.9) / 1.8 * size - 0.5, (0.9 - d @ self.U) / 1.8 * size - 0.5
-
-    def render(self, ppc: np.ndarray, region: np.ndarray | None, size: int) -> np.ndarray:
-        if self.img is None or self.img.shape[0] != size:
-            self.img = ti.Vector.field(3, ti.f64, shape=(size, size))  # RGB of the rendering, [0, 1]
-        smooth = np.asarray(ppc, dtype=np.float32)
-        for a in range(3):  # 3-cell running mean along each axis (periodic images at the sides)
-            smooth = (smooth + np.roll(smooth, 1, a) + np.roll(smooth, -1, a)) / 3
-        reg = np.zeros(self.cells, np.uint8) if region is None else region.astype(np.uint8)
-        self._march(np.ascontiguousarray(ppc, dtype=np.float32), smooth, reg, size, self.vmax,
-                    ti.Vector(self.levels), ti.Vector(self.F), ti.Vector(self.R), ti.Vector(self.U),
-                    ti.Vector(self.shape))
-        return np.clip(self.img.to_numpy().transpose(1, 0, 2), 0, 1)
-
-    @ti.func
-    def _at(self, vol: ti.template(), c, n):
-        c = ti.math.clamp(c, 0, n - 1)
-        return vol[c[0], c[1], c[2]]
-
-    @ti.kernel
-    def _march(self, vol: ti.types.ndarray(), avg: ti.types.ndarray(), reg: ti.types.ndarray(), size: ti.i32,
-               vmax: ti.f64, levels: ti.types.vector(2, ti.f64), F: ti.types.vector(3, ti.f64),
-               R: ti.types.vector(3, ti.f64), U: ti.types.vector(3, ti.f64), box: ti.types.vector(3, ti.f64)):
-        n = ti.Vector([vol.shape[0], vol.shape[1], vol.shape[2]])
-        h = 1.0 / ti.cast(n.max(), ti.f64)  # one cell along the longest axis
-        for px, py in ti.ndrange(size, size):
-            u = (px + 0.5) / size * 1.8 - 0.9
-            v = 0.9 - (py + 0.5) / size * 1.8
-            p = u * R + v * U + 1.5 * F
-            col = ti.Vector([0.0, 0.0, 0.0])
-            T = 1.0
-            inside, prev, started = 0, 0.0, 0
-            for k in range(ti.cast(3.0 / h, ti.i32)):
-                x = (p - (k * h) * F) / box + 0.5  # fraction of each side
-                if 0 <= x[0] < 1 and 0 <= x[1] < 1 and 0 <= x[2] < 1 and T > 0.01:
-                    c = ti.min(ti.cast(x * n, ti.i32), n - 1)
-                    q = ti.cast(avg[c[0], c[1], c[2]], ti.f64)
-                    if started:
-                        for l in ti.static(range(2)):
-                            if (prev - levels[l]) * (q - levels[l]) < 0:  # the ray crosses a shell
-                                g = ti.Vector([0.0, 0.0, 0.0])
-                                for a in ti.static(range(3)):
-                                    e = ti.Vector([0, 0, 0])
-                                    e[a] = 1
-                                    g[a] = self._at(avg, c + e, n) - self._at(avg, c - e, n)
-                                shade = 0.55 + 0.45 * ti.abs(g.normalized(1e-12).dot(F))
-                                rgb = self.lut[ti.min(ti.cast(levels[l] / vmax * 256.0, ti.i32), 255)] * shade
-                                col += T * self.SHELL * rgb
-                                T *= 1.0 - self.SHELL
-                    r = ti.cast(reg[c[0], c[1], c[2]], ti.i32)
-                    if started and r != inside:  # the ray crosses the particle region's boundary
-                        col += T * self.HULL * ti.Vector(HULL_RGB)
-                        T *= 1.0 - self.HULL
-                    if vol[c[0], c[1], c[2]] < 0:
-                        col += T * self.NEGATIVE * ti.Vector([1.0, 1.0, 1.0])
-                        T *= 1.0 - self.NEGATIVE
-                    inside, prev, started = r, q, 1
-            self.img[px, py] = col + T * ti.Vector([0.93, 0.93, 0.93])
 
 
 class FrameWriter:

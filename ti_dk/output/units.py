@@ -1,6 +1,6 @@
 """The ``units`` attribute of every dataset of a run file (:class:`ti_dk.output.files.RunFile`).
 
-Conventions: lengths in the scene's unit L, times in L²/2D (the particles diffuse with D = ½, so
+Conventions: lengths in the scene's unit L, times in L²/(2D) (the particles diffuse with D = ½, so
 one unit of time is L²); ``/stats`` moments are of the number density, particles per unit volume
 (L^-d in d dimensions; multiply by the group's ``cell_volume`` for particles per cell), while
 histograms and frames count particles per cell; per-step diagnostics and regrid records of an
@@ -10,7 +10,7 @@ from __future__ import annotations
 
 SUM = " (sum over members)"
 UNITS = {
-    "stats/time": "L^2/2D (the time of the row)",
+    "stats/time": "L^2/(2D) (the time of the row)",
     "stats/n_samples": "densities pooled into the row (members x time samples)",
     "stats/mean": "particles per unit volume (L^-d)",
     "stats/variance": "(particles per unit volume)^2 (L^-2d); unbiased, over the row's samples",
@@ -19,7 +19,7 @@ UNITS = {
     "stats/histogram": "samples per bin; bin k: lo + k particles per cell (attribute lo)",
     "stats/histogram_outside": "samples outside the histogram's bins",
     "stats/structure_factor": "dimensionless: <|sum_j dN_j e^(-ik.x_j)|^2> / <N_total> (attribute definition)",
-    "diagnostics/time": "L^2/2D (the end of the step)",
+    "diagnostics/time": "L^2/(2D) (the end of the step)",
     "diagnostics/mass": "particles" + SUM,
     "diagnostics/min_density": "particles per unit volume (L^-d); minimum over members and cells",
     "diagnostics/negative_cells": "cells with negative density" + SUM,
@@ -34,7 +34,7 @@ UNITS = {
     "regrid/created": "particles sampled into newly covered cells" + SUM,
     "regrid/removed": "particles removed from cells no longer covered" + SUM,
     "regrid/on_demand": "members regridded off schedule (0: a scheduled regrid of all)",
-    "frames/time": "L^2/2D (the time of the frame)",
+    "frames/time": "L^2/(2D) (the time of the frame)",
     "frames/negative_cells": "cells with negative density in member 0's frame",
 }
 

@@ -245,6 +245,8 @@ class OutputKeys:
     movie_frames: int = key("int", "--movie: frames evenly spaced in time", 48, lo=1, hi=10_000)
     color_max: float = key("real", "2D/3D frames: top of the colour range in particles per cell (0: the largest "
                            "initial or reservoir density + 3 Poisson sd)", 0.0, lo=0.0, hi=MAX_PPC)
+    color_scale: str = key("choice", "2D/3D frames: colour scale of the density (log: from 0.1 particles per cell "
+                           "up, for a few particles beside many)", "linear", choices=("linear", "log"))
 
 
 SECTIONS = {"grid": GridKeys, "init": InitKeys, "time": TimeKeys, "method": MethodKeys, "hybrid": HybridKeys,
