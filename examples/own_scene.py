@@ -1,4 +1,5 @@
-"""A scene of your own: written as a TOML file in a temporary folder, loaded, run with the hybrid.
+"""A scene of your own: written as a TOML file in a temporary folder, loaded, run with the hybrid
+(its files written only with ``--out``).
 
 The scene of the tutorial (docs/tutorial-scene.md): a 2D box whose middle holds a disk of low
 density (2 particles per cell) in a bulk of 30, fed by a reservoir of 30 particles per cell on the
@@ -49,7 +50,7 @@ output_times = [0.0005, 0.001]
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--small", action="store_true", help="16 x 16 cells to t = 0.0005: seconds")
-    ap.add_argument("--out", help="where the run's files go (default: a temporary folder)")
+    ap.add_argument("--out", help="write the run's files (run file, frames, snapshots) here (default: none)")
     args = ap.parse_args()
     with tempfile.TemporaryDirectory() as tmp:
         path = Path(tmp) / "lowdisk2d.toml"
@@ -57,7 +58,7 @@ def main() -> None:
         small = dict(cells=[16, 16], t_end=0.0005, output_times=[]) if args.small else {}
         scene = ti_dk.load_scene(path, **small)  # keyword arguments override keys, as --set does
         print(f"{scene.name}: {scene.description}; {scene.grid.cells} cells, {scene.n_steps} steps")
-        result = ti_dk.run(scene, out=args.out or Path(tmp) / "runs", progress=False, overwrite=True)
+        result = ti_dk.run(scene, out=args.out, progress=False, overwrite=True)  # out=None: in memory only
         ppc = result.final_density[0] * result.cell_volume
         last = result.regrids[-1]
         print(f"particles: {ppc.sum():,.1f} at the end, {scene.initial_ppc.sum():,.1f} at the start "
@@ -65,7 +66,10 @@ def main() -> None:
         print(f"particle region: {last['covered_cells']} cells in {last['boxes']} boxes after "
               f"{len(result.regrids)} regrids; lowest cell {ppc.min():.2f} particles; "
               f"negative cells in any step: {int(result.diagnostics['negative_cells'].max())}")
-        print("wrote:", *(f"  {p}" for p in result.written.values()), sep="\n")
+        if args.out:
+            print("wrote:", *(f"  {p}" for p in result.written.values()), sep="\n")
+        else:
+            print("nothing written (the run was kept in memory): --out DIR writes its files")
 
 
 if __name__ == "__main__":

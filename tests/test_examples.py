@@ -4,7 +4,9 @@ import os
 import re
 import subprocess
 import sys
+from pathlib import Path
 
+import numpy as np
 import pytest
 
 from .helpers import ROOT
@@ -12,9 +14,9 @@ from .helpers import ROOT
 EXAMPLES = sorted(p.name for p in (ROOT / "examples").glob("*.py"))
 
 
-def _run(name, tmp_path):
+def _run(name, tmp_path, *args):
     env = dict(os.environ, PYTHONPATH=str(ROOT), PYTHONWARNINGS="ignore")
-    done = subprocess.run([sys.executable, str(ROOT / "examples" / name), "--small"], cwd=tmp_path, env=env,
+    done = subprocess.run([sys.executable, str(ROOT / "examples" / name), "--small", *args], cwd=tmp_path, env=env,
                           capture_output=True, text=True, timeout=600)
     assert done.returncode == 0, done.stderr[-2000:]
     return done.stdout
@@ -31,16 +33,28 @@ def test_ensemble_moments_conserves_every_members_particles(tmp_path):
     assert "void1d, hybrid, 20 members" in out
     # void1d: 20 per cell in the 50 cells outside the void, periodic: 1000 per member, exactly
     assert "particles per member at the end: 1000.000000 (the start: 1000.000000" in out
-    assert len(re.findall(r"^\s+2\d\s", out, re.M)) + len(re.findall(r"^\s+30\s", out, re.M)) == 11
+    rows = re.findall(r"^\s+(?:2\d|30)\s.*$", out, re.M)
+    assert len(rows) == 11
+    # each moment with its standard error, the exact value and its z-score: 4 x 4 numbers after the cell
+    cols = np.array([row.split()[1:] for row in rows], dtype=float)
+    assert cols.shape == (11, 16)
+    est, se, exact, z = (cols[:, k::4] for k in range(4))
+    assert np.all(se > 0) and np.allclose(z, (est - exact) / se, atol=0.06)
+    assert np.abs(z).max() < 4 and f"largest |z| {np.abs(z).max():.1f}" in out  # the hybrid is right
 
 
 def test_own_scene_loads_the_written_toml_and_runs_the_hybrid(tmp_path):
-    out = _run("own_scene.py", tmp_path)
+    out = _run("own_scene.py", tmp_path, "--out", "runs")
     assert out.startswith("lowdisk2d: A low-density disk in a bulk, fed by a reservoir on the left wall; (16, 16) cells")
     # the disk (2 per cell) is below threshold 6: the region is not empty
     covered = int(re.search(r"particle region: (\d+) cells", out).group(1))
     assert 0 < covered < 256
-    assert "lowdisk2d_hybrid.h5" in out
+    written = [line.strip() for line in out.split("wrote:\n")[1].splitlines()]
+    assert str(tmp_path / "runs" / "lowdisk2d_hybrid.h5") in written or "runs/lowdisk2d_hybrid.h5" in written
+    assert all((tmp_path / p).exists() for p in written)  # every path it prints is there after it ends
+    out = _run("own_scene.py", tmp_path / "runs")  # without --out: no path printed, nothing written
+    assert "wrote:" not in out and "nothing written" in out and sorted(p.name for p in (tmp_path / "runs").iterdir()) \
+        == sorted(p.name for p in map(Path, written))
 
 
 def test_read_output_reads_the_run_file_and_the_openpmd_snapshot(tmp_path):
