@@ -71,3 +71,23 @@ def test_read_output_reads_the_run_file_and_the_openpmd_snapshot(tmp_path):
 def test_every_example_says_what_it_is_and_how_to_run_it(name):
     text = (ROOT / "examples" / name).read_text()
     assert text.startswith('"""') and f"python examples/{name}" in text
+
+
+@pytest.mark.parametrize("page", ["README.md", "docs/quickstart.md"])
+def test_the_python_examples_of_the_readme_and_quickstart_load_without_a_warning(page):
+    """Their ``load_scene`` lines run as written with every warning an error (output times past
+    t_end were one), and the scene list they print is the shipped one."""
+    import warnings
+
+    import ti_dk
+
+    text = (ROOT / page).read_text()
+    lines = re.findall(r"^scene = (ti_dk\.load_scene\(.*\))", text, re.M)
+    assert lines
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        for line in lines:
+            eval(line, {"ti_dk": ti_dk})
+    for shown in re.findall(r"available_scenes\(\)\)\s+# (\[.*\])", text):
+        assert eval(shown) == ti_dk.available_scenes()
+
