@@ -152,3 +152,15 @@ def test_scene_files_are_found_through_importlib_resources(tmp_path):
     out = subprocess.run([sys.executable, "-c", _MAPPED_FINDER, str(data)], cwd=tmp_path, env=env,
                          capture_output=True, text=True, check=True).stdout.split()
     assert out == [str(data), "['packaged1d']", "(100,)"]
+
+
+def test_docs_cite_nothing_a_stranger_cannot_see_and_write_one_time_unit():
+    """No issue numbers or project-private paths in the documentation (benchmarks.md names the
+    sections of benchmarks/RESULTS.md, which carry them), and the time unit written one way,
+    L²/(2D), in the docs, the code and the frames."""
+    private = re.compile(r"\b[Ii]ssues? \d+|\bshared/")
+    cited = [f"{p.name}: {m.group()}" for p in (ROOT / "docs").rglob("*.md") if p.name != "benchmarks.md"
+             for m in private.finditer(p.read_text())]
+    assert not cited
+    texts = [*(ROOT / "docs").rglob("*.md"), *MODULES, ROOT / "README.md"]
+    assert not [p.name for p in texts if re.search(r"L(²|\^2)/2D", p.read_text())]
