@@ -39,7 +39,10 @@ def test_boundaries_per_axis_and_side():
     "name, overrides, message",
     [
         ("nope", {}, "unknown scene 'nope'"),
-        ("void1d", {"bogus": 1}, "unknown key 'bogus'"),
+        ("void1d", {"bogus": 1}, "unknown key 'bogus': valid keys are C, "),  # nothing near it
+        ("void1d", {"treshold": 1}, "unknown key 'treshold': did you mean threshold? valid keys are C, "),
+        ("ellipse2d", {"colour_scale": "log"}, "unknown key 'colour_scale': did you mean color_scale or color_max? "),
+        ("void1d", {"void_high": 1}, "did you mean void_hi or void_lo? "),  # the initial condition's own keys too
         ("void1d", {"ensemble": "many"}, "ensemble = 'many': give a whole number"),
         ("void1d", {"ensemble": 0}, "ensemble = 0: give a whole number in [1, 4294967296]"),
         ("void1d", {"cells": [0]}, "give a whole number >= 1"),

@@ -26,7 +26,7 @@ from ..methods.fluxes import drift_coefficients, stability_number
 from .estimates import check_memory
 from .schema import (BOUNDARY_KINDS, CLAMP_WARN, INIT_AXES, INIT_KEYS, KEYS, MAX_FIELD,
                      MAX_MEMBERS, MAX_STEPS, METHODS, NAME_RE, PPC_LIMITS, SCENE_DIR, SECTIONS, WHERE, ClampWarning,
-                     ConfigError, GridKeys, InitKeys, Key, MethodKeys, Scene, TimeKeys)
+                     ConfigError, GridKeys, InitKeys, Key, MethodKeys, Scene, TimeKeys, did_you_mean)
 
 # ---------------------------------------------------------------------------------------
 # loading
@@ -162,7 +162,7 @@ def _init_keys(flat: dict[str, Any]) -> InitKeys:
             raise ConfigError(f"'{unknown[0]}' is not a parameter of initial condition '{ic_name}': "
                               f"its parameters are {', '.join(ic_keys)}")
         valid = sorted(set(WHERE) - {"name", "init"} | set(ic_keys))
-        raise ConfigError(f"unknown key '{unknown[0]}': valid keys are {', '.join(valid)}")
+        raise ConfigError(f"unknown key '{unknown[0]}': {did_you_mean(unknown[0], valid)}valid keys are {', '.join(valid)}")
     return InitKeys(ic_name, tuple(sorted(params.items())))
 
 

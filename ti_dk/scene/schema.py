@@ -17,6 +17,7 @@ and :func:`work_estimate`, all before Taichi starts.
 from __future__ import annotations
 
 import dataclasses
+import difflib
 import functools
 import importlib.resources
 import inspect
@@ -128,6 +129,12 @@ class Key:
         if not math.isfinite(value) or below or (self.hi is not None and value > self.hi):
             raise ConfigError(f"{name} = {value!r}: give {self.describe()}")
         return value
+
+
+def did_you_mean(name: Any, names) -> str:
+    """``"did you mean a or b? "``: the ``names`` nearest a misspelt ``name`` (``difflib``), or ``""``."""
+    near = difflib.get_close_matches(str(name), list(names), n=3)
+    return f"did you mean {' or '.join(near)}? " if near else ""
 
 
 def key(kind: str, doc: str, default: Any = dataclasses.MISSING, flat: str | None = None, **limits) -> Any:
