@@ -49,6 +49,37 @@ def test_openpmd_round_trip(tmp_path):
     assert np.array_equal(covered, region)
 
 
+def test_openpmd_units_are_pure_numbers_of_l_unless_l_and_d_are_given_in_si(tmp_path):
+    """Without length_si the snapshot claims no metres (unitDimension 0, and says so in words); with
+    L = 2 µm and D = 1e-12 m²/s a third-party reader converts lengths to metres, densities to m^-2
+    and times to seconds (the unit L²/(2D) = 2 s)."""
+    common = dict(cells=[16, 16], t_end=0.0005, compare="none", output_times=[0.0005], regrid_interval=3)
+    plain, si = tmp_path / "plain", tmp_path / "si"
+    res = run(load_scene("ellipse2d", **common), out=plain, frames=False)
+    scene = load_scene("ellipse2d", length_si=2e-6, diffusion_si=1e-12, **common)
+    run(scene, out=si, frames=False)
+    name = f"ellipse2d_hybrid_openpmd/data{scene.n_steps:06d}.h5"
+    with h5py.File(plain / name) as f:
+        rho = f[f"data/{scene.n_steps}/meshes/density"]
+        assert rho.attrs["unitSI"] == 1.0 and not rho.attrs["unitDimension"].any()
+        assert not f[f"data/{scene.n_steps}/particles/particles/position"].attrs["unitDimension"].any()
+        assert "units of the scene's L" in f.attrs["ti_dk_units"].decode()
+    with h5py.File(si / name) as f:
+        assert f.attrs["ti_dk_units"].decode() == "lengths in L = 2e-06 m; times in L^2/(2D) = 2 s"
+    a, b = (OpenPMDTimeSeries(str(d / "ellipse2d_hybrid_openpmd")) for d in (plain, si))
+    (rho_a, info_a), (rho_b, info_b) = (ts.get_field("density", iteration=scene.n_steps) for ts in (a, b))
+    assert np.array_equal(rho_a, res.final_density[0]) and np.allclose(rho_b, rho_a / 4e-12, rtol=1e-12)
+    assert np.isclose(info_b.dx, 2e-6 / 16) and np.isclose(info_a.dx, 1 / 16)
+    assert np.allclose(b.t, a.t * 2.0) and np.isclose(a.t[-1], scene.n_steps * scene.dt)
+    (xa,), (xb,) = (ts.get_particle(["x"], species="particles", iteration=scene.n_steps) for ts in (a, b))
+    assert len(xa) > 0 and np.allclose(xb, xa * 2e-6)  # the same seed: the same particles
+
+
+def test_diffusion_si_without_length_si_is_refused():
+    with pytest.raises(ti_dk.ConfigError, match="diffusion_si = 1e-09 without length_si"):
+        load_scene("ellipse2d", diffusion_si=1e-9)
+
+
 def test_version_is_the_one_in_pyproject(tmp_path):
     pyproject = tomllib.loads((ROOT / "pyproject.toml").read_text())
     assert ti_dk.__version__ == pyproject["project"]["version"]

@@ -226,7 +226,7 @@ class Snapshots:
     def write(self, n: int) -> None:
         s, sc = self.solver.snapshot(0), self.scene
         write_openpmd(self.directory, n, n * sc.dt, sc.dt, sc.grid, s.density, s.region, s.positions,
-                      None if s.pid is None else pack_ids(s.pid), s.boxes)
+                      None if s.pid is None else pack_ids(s.pid), s.boxes, (sc.output.length_si, sc.output.diffusion_si))
 
 
 class Checkpoints:

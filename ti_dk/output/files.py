@@ -321,13 +321,20 @@ def pack_ids(pid: np.ndarray) -> np.ndarray:
 
 def write_openpmd(directory: Path, iteration: int, t: float, dt: float, grid, density: np.ndarray,
                   region: np.ndarray | None = None, positions: np.ndarray | None = None,
-                  ids: np.ndarray | None = None, boxes: np.ndarray | None = None) -> Path:
+                  ids: np.ndarray | None = None, boxes: np.ndarray | None = None,
+                  si: tuple[float, float] = (0.0, 0.0)) -> Path:
     """One openPMD 1.1.0 snapshot (file-based: ``data<iteration>.h5``) of one ensemble member.
 
     Meshes ``density`` (number density), ``negative_cells`` and, for the hybrid,
     ``particle_region`` (1 where covered); species ``particles`` with ``position`` and ``id``;
     the box list as ``/ti_dk/boxes`` (rows: lo..., hi... in cells), outside the base path.
     Written to a temporary name and renamed, so a snapshot on disk is always whole.
+
+    Units: ``si`` = (L in metres, D in m²/s), the scene's ``length_si`` and ``diffusion_si``.
+    Without L (0) lengths and densities are pure numbers in units of L (``unitDimension`` 0,
+    ``unitSI`` 1); with it they are in metres (``unitSI`` L^p, ``unitDimension`` L^p); times are in
+    seconds (``timeUnitSI`` L²/(2D)) only with D as well. The root attribute ``ti_dk_units`` says
+    which, in words.
     """
     directory.mkdir(parents=True, exist_ok=True)
     path = directory / f"data{iteration:06d}.h5"
@@ -339,18 +346,31 @@ def write_openpmd(directory: Path, iteration: int, t: float, dt: float, grid, de
         a["iterationEncoding"], a["iterationFormat"] = _b("fileBased"), _b("data%06T.h5")
         a["software"], a["softwareVersion"] = _b("ti_dk"), _b(package_version())
         a["date"] = _b(time.strftime("%Y-%m-%d %H:%M:%S %z"))
+        length, diffusion = si
+        tau = length**2 / (2 * diffusion) if length and diffusion else 0.0  # the time unit L²/(2D) [s]
+        a["ti_dk_units"] = _b((f"lengths in L = {length:g} m" if length else "lengths in units of the scene's L, "
+                               "pure numbers (unitSI 1, unitDimension 0; length_si gives metres)")
+                              + (f"; times in L^2/(2D) = {tau:g} s" if tau else "; times in units of L^2/(2D), not "
+                                 "seconds (timeUnitSI 1 stands for that unit; length_si and diffusion_si give seconds)"))
         it = f.create_group(f"data/{iteration}")
-        it.attrs["time"], it.attrs["dt"], it.attrs["timeUnitSI"] = float(t), float(dt), 1.0
-        _openpmd_meshes(it.create_group("meshes"), grid, density, region)
+        it.attrs["time"], it.attrs["dt"], it.attrs["timeUnitSI"] = float(t), float(dt), tau or 1.0
+        _openpmd_meshes(it.create_group("meshes"), grid, density, region, length)
         if positions is not None:
-            _openpmd_particles(it.create_group("particles/particles"), positions, ids)
+            _openpmd_particles(it.create_group("particles/particles"), positions, ids, length)
         if boxes is not None:
             f.create_dataset("ti_dk/boxes", data=boxes)
             f["ti_dk"].attrs["columns"] = _b("lo (one per axis), hi (one per axis), in cells; hi exclusive")
     return path
 
 
-def _openpmd_meshes(meshes, grid, density: np.ndarray, region: np.ndarray | None) -> None:
+def _unit(power: int, length: float) -> dict:
+    """``unitSI`` and ``unitDimension`` of a quantity of dimension L^power: in metres with ``length``
+    (L in metres), else a pure number in units of L."""
+    return {"unitSI": float(length**power) if length else 1.0,
+            "unitDimension": np.array([power if length else 0, 0, 0, 0, 0, 0, 0], dtype=np.float64)}
+
+
+def _openpmd_meshes(meshes, grid, density: np.ndarray, region: np.ndarray | None, length: float) -> None:
     """Meshes ``density``, ``negative_cells`` and, with a region, ``particle_region``."""
     d = grid.dim
     labels = [_b(a) for a in "xyz"[:d]]
@@ -359,17 +379,17 @@ def _openpmd_meshes(meshes, grid, density: np.ndarray, region: np.ndarray | None
         fields["particle_region"] = (region.astype(np.uint8), 0)
     for name, (data, length_power) in fields.items():
         ds = meshes.create_dataset(name, data=data)
-        ds.attrs["unitDimension"] = np.array([length_power, 0, 0, 0, 0, 0, 0], dtype=np.float64)
+        ds.attrs.update(_unit(length_power, length))
         ds.attrs["timeOffset"] = np.float32(0.0)
         ds.attrs["geometry"], ds.attrs["dataOrder"] = _b("cartesian"), _b("C")
         ds.attrs["axisLabels"] = np.array(labels)
         ds.attrs["gridSpacing"] = np.array(grid.dx, dtype=np.float64)
         ds.attrs["gridGlobalOffset"] = np.zeros(d)
-        ds.attrs["gridUnitSI"], ds.attrs["unitSI"] = 1.0, 1.0
+        ds.attrs["gridUnitSI"] = _unit(1, length)["unitSI"]
         ds.attrs["position"] = np.full(d, 0.5)
 
 
-def _openpmd_particles(sp, positions: np.ndarray, ids: np.ndarray) -> None:
+def _openpmd_particles(sp, positions: np.ndarray, ids: np.ndarray, length: float) -> None:
     """Species records ``position``, ``positionOffset`` (constant 0) and ``id``."""
     n, d = positions.shape
     for rec, power in (("position", 1), ("positionOffset", 1), ("id", 0)):
@@ -384,6 +404,6 @@ def _openpmd_particles(sp, positions: np.ndarray, ids: np.ndarray) -> None:
                 else:
                     c = g.create_group(axis)
                     c.attrs["value"], c.attrs["shape"] = 0.0, np.array([n], dtype=np.uint64)
-                c.attrs["unitSI"] = 1.0
-        g.attrs["unitDimension"] = np.array([power, 0, 0, 0, 0, 0, 0], dtype=np.float64)
+                c.attrs["unitSI"] = _unit(power, length)["unitSI"]
+        g.attrs["unitDimension"] = _unit(power, length)["unitDimension"]
         g.attrs["timeOffset"] = np.float32(0.0)

@@ -254,6 +254,15 @@ class OutputKeys:
                            "initial or reservoir density + 3 Poisson sd)", 0.0, lo=0.0, hi=MAX_PPC)
     color_scale: str = key("choice", "2D/3D frames: colour scale of the density (log: from 0.1 particles per cell "
                            "up, for a few particles beside many)", "linear", choices=("linear", "log"))
+    length_si: float = key("real", "openPMD snapshots: the length unit L in metres (0: lengths and densities stay "
+                           "pure numbers in units of L)", 0.0, lo=0.0, hi=1e30)
+    diffusion_si: float = key("real", "openPMD snapshots, with length_si: D in m^2/s, so that times are in seconds "
+                              "(the time unit is L^2/(2D); 0: times stay in it)", 0.0, lo=0.0, hi=1e30)
+
+    def __post_init__(self):
+        if self.diffusion_si and not self.length_si:
+            raise ConfigError(f"diffusion_si = {self.diffusion_si:g} without length_si: the time unit L^2/(2D) needs "
+                              "both; give length_si (L in metres) too, or neither")
 
 
 SECTIONS = {"grid": GridKeys, "init": InitKeys, "time": TimeKeys, "method": MethodKeys, "hybrid": HybridKeys,
