@@ -16,7 +16,7 @@ if [[ $what == scenes || $what == all ]]; then
     $py -m ti_dk.scene doublewell2d --out "$out"
     cp "$out/ellipse2d_hybrid_frames/frame_0002.png" $gallery/ellipse2d_t00096.png
     cp "$out/sphere3d_hybrid_frames/frame_0002.png" $gallery/sphere3d_t0015.png
-    cp "$out/quick/ellipse2d_hybrid.mp4" $gallery/ellipse2d_quick.mp4
+    cp "$out/quick/ellipse2d_quick_hybrid.mp4" $gallery/ellipse2d_quick.mp4
     cp "$out/void1d_hybrid_frames/frame_0001.png" $gallery/void1d_hybrid_t0025.png
     cp "$out/trap1d_particle_frames/frame_0000.png" $gallery/trap1d_particle.png
     cp "$out/doublewell2d_hybrid_frames/frame_0005.png" $gallery/doublewell2d_t005.png
