@@ -159,19 +159,20 @@ class Renderer:
     """Frames of a grid of ``cells`` (lengths ``lengths``) with ``rows`` methods, densities on ``[0, vmax]``
     particles per cell, headed by ``title``; ``sides``: per axis the (lower, upper) sides' labels
     (:func:`side_labels`; None: none); ``dense``: 3D, the largest initial density that the volume
-    rendering's shell levels are fractions of (None: m with m + 3√m = vmax); ``potential``: U."""
+    rendering's shell levels are fractions of (None: m with m + 3√m = vmax); ``potential``: U;
+    ``log``: the colour scale is logarithmic, from ``LOG_FLOOR`` (or vmax/10 below it) to vmax."""
 
     def __init__(self, cells, lengths, rows: int, vmax: float, title: str, sides=None, dense=None, potential=None,
                  log: bool = False):
         self.cells, self.lengths = tuple(int(n) for n in cells), tuple(float(v) for v in lengths)
         self.dim, self.rows, self.vmax, self.title = len(self.cells), rows, float(vmax), title
-        self.sides, self.potential = sides, potential  # U(x, y) drawn faintly in 2D (None: none)
+        self.sides, self.potential = sides, potential  # U(x, y) drawn as labelled contours in 2D (None: none)
         m = (math.sqrt(9 / 4 + self.vmax) - 1.5) ** 2 if dense is None else dense  # m + 3√m = vmax
         self.dx = tuple(L / n for L, n in zip(self.lengths, self.cells))
         target = 512 if self.dim == 2 else 256  # pixels along the longest side of a panel
         self.s = max(1, target // max(round(L / min(self.dx)) for L in self.lengths))  # pixels per finest cell
         self.ppu = self.s / min(self.dx)  # pixels per unit length
-        self.cmap = matplotlib.colormaps["viridis"].with_extremes(under="white", bad="white")  # log: < 0 is "bad"
+        self.cmap = matplotlib.colormaps["viridis"].with_extremes(under="white", bad="white")  # LogNorm: <= 0 is bad
         self.log = log
         self.norm = LogNorm(min(LOG_FLOOR, self.vmax / 10), self.vmax) if log else Normalize(0.0, self.vmax)
         if self.dim == 3:
