@@ -348,10 +348,11 @@ def write_openpmd(directory: Path, iteration: int, t: float, dt: float, grid, de
         a["date"] = _b(time.strftime("%Y-%m-%d %H:%M:%S %z"))
         length, diffusion = si
         tau = length**2 / (2 * diffusion) if length and diffusion else 0.0  # the time unit L²/(2D) [s]
-        a["ti_dk_units"] = _b((f"lengths in L = {length:g} m" if length else "lengths in units of the scene's L, "
-                               "pure numbers (unitSI 1, unitDimension 0; length_si gives metres)")
-                              + (f"; times in L^2/(2D) = {tau:g} s" if tau else "; times in units of L^2/(2D), not "
-                                 "seconds (timeUnitSI 1 stands for that unit; length_si and diffusion_si give seconds)"))
+        lengths = f"lengths in L = {length:g} m" if length else \
+            "lengths in units of the scene's L, pure numbers (unitSI 1, unitDimension 0; length_si gives metres)"
+        times = (f"times in L^2/(2D) = {tau:g} s" if tau else "times in units of L^2/(2D), not seconds "
+                 "(timeUnitSI 1 stands for that unit; length_si and diffusion_si give seconds)")
+        a["ti_dk_units"] = _b(f"{lengths}; {times}")
         it = f.create_group(f"data/{iteration}")
         it.attrs["time"], it.attrs["dt"], it.attrs["timeUnitSI"] = float(t), float(dt), tau or 1.0
         _openpmd_meshes(it.create_group("meshes"), grid, density, region, length)
