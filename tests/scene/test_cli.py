@@ -302,8 +302,9 @@ def test_quick_runs_the_double_well_and_leaves_the_full_run_free(tmp_path):
     r = cli("doublewell2d", "--quick", "--t-end", "0.002", "--set", "output_times=[0.001]", "--no-snapshots",
             "--out", str(tmp_path), cwd=tmp_path)
     assert r.returncode == 0, r.stderr
-    said = [ln for ln in r.stderr.splitlines() if ln.startswith("ti_dk:")]
+    said = [ln for ln in r.stderr.splitlines() if ln.startswith("ti_dk: --quick")]  # (a busy machine adds a note)
     assert len(said) == 1 and said[0].startswith("ti_dk: --quick: C = 0.0083, half the stability limit"), r.stderr
+    assert "ti_dk: warning" not in r.stderr and "ti_dk: error" not in r.stderr, r.stderr
     assert sorted(p.name for p in tmp_path.iterdir()) == ["doublewell2d_quick_hybrid.h5",
                                                            "doublewell2d_quick_hybrid_frames"]
     with h5py.File(tmp_path / "doublewell2d_quick_hybrid.h5") as f:
