@@ -203,7 +203,8 @@ class Controller:
         """The MP4 of every frame."""
         if self.frames.writer:
             t0 = time.perf_counter()
-            self.frames.writer.movie(self.outputs.staged(self.outputs.movie))
+            movie = self.frames.writer.movie(self.outputs.staged(self.outputs.movie))
+            self.rf.annotate("movie_bytes", movie.stat().st_size)  # what tells a later run the movie is ours
             self.written["movie"] = self.outputs.movie
             self.clock.add("render", t0)
 

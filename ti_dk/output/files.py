@@ -86,7 +86,8 @@ class RunFile:
     """One run's HDF5 file.
 
     Layout: attributes ``scene`` (JSON), ``versions`` (JSON), ``seed``, ``complete``,
-    ``wall_time``, ``timing``; ``/stats/time``, ``/stats/n_samples`` and
+    ``wall_time``, ``timing``, ``movie_bytes`` (with a movie: its size, which marks it as this
+    run's); ``/stats/time``, ``/stats/n_samples`` and
     ``/stats/{mean,variance,skewness,kurtosis}`` shaped ``(n_rows, *cells)``, optional
     ``/stats/histogram`` ``(n_rows, *cells, bins)`` with attribute ``lo`` and
     ``/stats/histogram_outside``, optional ``/stats/structure_factor`` ``(n_rows, *half cells)``
@@ -211,6 +212,7 @@ class RunFile:
     def annotate(self, name: str, value) -> None:
         """Set the root attribute ``name`` (JSON text for a dict: ``timing``, ``chunks``)."""
         self.h5.attrs[name] = json.dumps(value) if isinstance(value, dict) else value
+        self.h5.flush()
 
     def close(self, wall_time: float | None = None, error: str | None = None) -> None:
         """Close the file, marked complete only without ``error``; after an I/O error, as far as the
