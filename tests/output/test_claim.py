@@ -10,7 +10,7 @@ import pytest
 
 from ti_dk import ConfigError, load_scene, run
 
-from ..helpers import file_tree
+from ..helpers import file_tree, no_hang
 
 STEM = "ellipse2d_fv"
 
@@ -111,6 +111,6 @@ def test_a_fifo_at_an_output_path_is_refused_at_once(tmp_path, where):
     out.mkdir()
     fifo = out / where.format(stem=STEM)
     os.mkfifo(fifo)
-    with pytest.raises(ConfigError, match="is not a regular file") as err:
+    with no_hang(), pytest.raises(ConfigError, match="is not a regular file") as err:
         run(_scene(), out=out)
     assert str(fifo) in str(err.value) and [p.name for p in out.iterdir()] == [fifo.name]
