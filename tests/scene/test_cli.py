@@ -496,6 +496,28 @@ def test_a_full_file_system_ends_with_one_line_and_status_1(tmp_path, mount):
     assert r.returncode == 1 and "the disk is full" in r.stderr and "Traceback" not in r.stderr, r.stderr
 
 
+@pytest.mark.parametrize("kib, started", [(64, False), (1100, True)])
+def test_a_file_size_limit_ends_with_one_line_and_status_1(tmp_path, kib, started):
+    """``ulimit -f``: 64 KiB (no room for the run file) and 1100 KiB (passed half-way); SIGXFSZ is
+    ignored, as Python leaves it, so writes fail with EFBIG."""
+    import resource
+
+    def limit():
+        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+        resource.setrlimit(resource.RLIMIT_FSIZE, (kib << 10, resource.RLIM_INFINITY))
+
+    times = "output_times=[" + ",".join(f"{k / 1000}" for k in range(1, 11)) + "]"
+    r = subprocess.run([sys.executable, "-m", "ti_dk.scene", "void1d", "--ensemble", "4", "--set", times,
+                        "--no-frames", "--no-progress", "--out", "out"], cwd=tmp_path, env=user_env(),
+                       capture_output=True, text=True, timeout=600, preexec_fn=limit)
+    assert r.returncode == 1 and r.stderr.count("\n") == 1 and "Traceback" not in r.stderr, r.stderr
+    assert f"file size limit (ulimit -f: {kib << 10} bytes)" in r.stderr, r.stderr
+    assert (tmp_path / "out" / "void1d_fv.h5").exists() == started
+    if started:
+        with h5py.File(tmp_path / "out" / "void1d_fv.h5") as f:
+            assert not f.attrs["complete"] and "File too large" in f.attrs["error"]
+
+
 def test_a_read_only_output_is_refused_before_the_run(tmp_path, mount, capsys):
     ro = mount("ro,size=64k")
     code, err = _main(["void1d", "--out", str(ro / "out")], capsys)

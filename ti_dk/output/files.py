@@ -3,9 +3,11 @@ from __future__ import annotations
 
 import errno
 import json
+import math
 import os
 import platform
 import re
+import resource
 import tempfile
 import time
 from contextlib import contextmanager
@@ -34,13 +36,16 @@ class OutputError(RuntimeError):
 def output_error(path: Path, exc: OSError) -> OutputError:
     """The one-line message for an I/O failure on ``path``, saying what to change."""
     why = {errno.ENOSPC: "the disk is full", errno.EDQUOT: "the disk quota is exceeded",
-           errno.EACCES: "permission denied", errno.EROFS: "the file system is read-only"}
+           errno.EACCES: "permission denied", errno.EROFS: "the file system is read-only",
+           errno.EFBIG: f"the file would pass this process's file size limit (ulimit -f: {_size_limit()} bytes)"}
     code = exc.errno
     if code is None:  # HDF5 reports the system error inside its message: "... errno = 28, ..."
         found = re.search(r"errno = (\d+)", str(exc))
         code = int(found.group(1)) if found else None
     reason = why.get(code) or exc.strerror or str(exc).splitlines()[0]
     remedy = "free space or give another --out" if code in (errno.ENOSPC, errno.EDQUOT) else \
+        "raise the limit (ulimit -f unlimited) or write less (fewer output times, members or cells)" \
+        if code == errno.EFBIG else \
         "give another --out" if code == errno.ENAMETOOLONG else "give a directory you can write with --out"
     return OutputError(f"cannot write {path}: {reason}; {remedy}")
 
@@ -49,7 +54,9 @@ SPACE_RESERVE = 1 << 20  # bytes kept free on the output's file system (HDF5 met
 
 
 def require_space(path: Path, nbytes: float) -> None:
-    """Raise ENOSPC *before* writing ``nbytes`` near ``path`` would leave less than ``SPACE_RESERVE``.
+    """Raise ENOSPC *before* writing ``nbytes`` near ``path`` would leave less than ``SPACE_RESERVE``,
+    and EFBIG before it would bring the file ``path`` (a new one, if a folder) within
+    ``SPACE_RESERVE`` of the process's file size limit (``ulimit -f``, ``RLIMIT_FSIZE``).
 
     HDF5 cannot recover from a write that fails for want of space: its metadata cache retries the
     flush forever and the process can crash when the file is released. Refusing the write first
@@ -59,6 +66,15 @@ def require_space(path: Path, nbytes: float) -> None:
     st = os.statvfs(folder)
     if st.f_bavail * st.f_frsize < nbytes + SPACE_RESERVE:
         raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(path))
+    size = path.stat().st_size if path.is_file() else 0
+    if size + nbytes + SPACE_RESERVE > _size_limit():
+        raise OSError(errno.EFBIG, os.strerror(errno.EFBIG), str(path))
+
+
+def _size_limit() -> float:
+    """The largest file this process may write, in bytes (``ulimit -f``; inf without a limit)."""
+    limit = resource.getrlimit(resource.RLIMIT_FSIZE)[0]
+    return math.inf if limit == resource.RLIM_INFINITY else limit
 
 
 def frame_file(directory: Path, k: int) -> Path:
