@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 import sys
+import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -19,7 +20,7 @@ from .handlers import Checkpoints, Clock, Diagnostics, Frames, Snapshots, Statis
 from ..output.claim import Outputs
 from ..output.files import RunFile, is_complete, output_error
 from ..methods.registry import make_solver  # also where tests and benchmarks build a solver
-from .runtime import Result, init, initialized, stats_of
+from .runtime import Result, init, initialized, started_here, stats_of
 from .signals import SimulationError, check_stop
 from ..methods.solver import Solver
 
@@ -68,15 +69,27 @@ def run(scene: Scene, out: str | Path | None = None, progress: bool | None = Non
                   frames=frames)
     opts = RunOptions(progress, arch, threads, frames, movie, snapshots, checkpoint_every,
                       Path(restart) if restart is not None else None, member0)
-    if out is None:
-        return _run(scene, None, opts)
-    outputs = Outputs.of(out, scene)
-    check_stop()
-    with outputs.claim(overwrite, fresh=restart is None) as outputs:
-        try:
-            return _run(scene, outputs, opts)
-        except OSError as exc:  # disk full, quota, permission: the run file is already closed
-            raise output_error(outputs.out, exc) from None
+    if not started_here():
+        raise SimulationError("Taichi was started on another thread, and runs only on that one: call ti_dk.run "
+                              "from the thread that started it, or run scenes in separate processes")
+    if not _ONE_RUN.acquire(blocking=False):  # two at once crash Taichi (runtime.started_here)
+        raise SimulationError("another ti_dk.run is going in this process, and Taichi runs one at a time: wait "
+                              "for it to return, or run scenes in separate processes")
+    try:
+        if out is None:
+            return _run(scene, None, opts)
+        outputs = Outputs.of(out, scene)
+        check_stop()
+        with outputs.claim(overwrite, fresh=restart is None) as outputs:
+            try:
+                return _run(scene, outputs, opts)
+            except OSError as exc:  # disk full, quota, permission: the run file is already closed
+                raise output_error(outputs.out, exc) from None
+    finally:
+        _ONE_RUN.release()
+
+
+_ONE_RUN = threading.Lock()  # held by the run going in this process (one at a time)
 
 
 def _run(scene: Scene, outputs: Outputs | None, opts: RunOptions) -> Result:

@@ -372,6 +372,9 @@ def check_options(scene: Scene, *, out: str | Path | None = None, executor: str 
 
     if movie and frames is False:
         raise ConfigError("--movie is made of frames: drop --no-frames or --movie")
+    if checkpoint_every and out is None:
+        raise ConfigError(f"checkpoint_every = {checkpoint_every}: a checkpoint is written in the output folder; "
+                          "give out (--out) or drop checkpoint_every")
     whole("--threads", threads, 1, 4096)
     whole("--checkpoint-every", checkpoint_every, 0, MAX_STEPS)
     whole("--workers", workers, 1, 4 * (os.cpu_count() or 1) if scheduler is None else 100_000)
