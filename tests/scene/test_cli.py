@@ -426,7 +426,7 @@ def test_signals_stop_cleanly(tmp_path, sig, trial):
     _signal_trial(tmp_path, sig, random.Random(trial * 31 + sig).uniform(0.0, 4.0))
 
 
-@pytest.mark.parametrize("sig, delay", [(signal.SIGINT, 0.0), (signal.SIGTERM, 0.3)])
+@pytest.mark.parametrize("sig, delay", [(signal.SIGINT, 0.0), (signal.SIGTERM, 0.3), (signal.SIGHUP, 0.6)])
 def test_signals_in_the_first_second_stop_cleanly(tmp_path, sig, delay):
     assert _signal_trial(tmp_path, sig, delay, after="start") == "stopped"
 
@@ -447,6 +447,52 @@ def test_signals_stop_cleanly_20_trials(tmp_path, sig):
         outcomes = list(pool.map(lambda k: _signal_trial(tmp_path / str(k), sig, delays[k], "start"), range(20)))
     print(signal.Signals(sig).name, {o: outcomes.count(o) for o in set(outcomes)})
     assert outcomes.count("stopped") >= 15, outcomes
+
+
+HANG = """
+import os, sys
+from ti_dk.control.controller import Controller
+from ti_dk.scene import cli, load
+
+def hang(*args, **kw):  # a read that never returns: a FIFO with no writer
+    print("waiting", flush=True)
+    os.open(sys.argv[1], os.O_RDONLY)
+
+if sys.argv[2] == "load":
+    load.load_scene = hang
+else:
+    Controller.advance = hang
+sys.exit(cli.main(["void1d", "--set", "cells=[8]", "--no-frames", "--no-progress", "--out", "out"]))
+"""
+
+
+@pytest.mark.parametrize("where, sig", [("load", signal.SIGTERM), ("load", signal.SIGHUP), ("step", signal.SIGINT),
+                                        ("step", signal.SIGTERM)])
+def test_a_run_that_hangs_is_ended_by_a_signal_at_once_or_by_the_second(tmp_path, where, sig):
+    """A read that waits forever while the scene loads ends at the first signal; in a step, the first
+    signal waits for the step to end, and a second ends the process at once; each with one line."""
+    import os
+
+    os.mkfifo(tmp_path / "fifo")
+    p = subprocess.Popen([sys.executable, "-c", HANG, str(tmp_path / "fifo"), where], cwd=tmp_path, env=user_env(),
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        assert p.stdout.readline() == "waiting\n"
+        time.sleep(0.2)
+        p.send_signal(sig)
+        if where == "step":
+            with pytest.raises(subprocess.TimeoutExpired):
+                p.wait(timeout=1.0)  # the first one waits for the step, which never ends
+            p.send_signal(sig)
+        _, err = p.communicate(timeout=10)
+    finally:
+        p.kill()
+    name = signal.Signals(sig).name
+    assert p.returncode == 128 + sig and err.count("\n") == 1, err
+    assert err.startswith(f"ti_dk: error: stopped by {name} " + ("a second time" if where == "step" else "before")), err
+    if where == "step":
+        with h5py.File(tmp_path / "out" / "void1d_fv.h5", "r", locking=False) as f:
+            assert not f.attrs["complete"]
 
 
 def test_a_killed_run_keeps_its_diagnostics_up_to_the_last_flush(tmp_path):
