@@ -128,7 +128,9 @@ class RunFile:
     them in every file, ``omitted`` those this file leaves out.
 
     Every row is flushed when written; ``complete`` turns true only at the end, so a killed run
-    leaves a readable file that says it is unfinished.
+    leaves a readable file that says it is unfinished. The file is written without HDF5's file
+    lock, so that ``h5py.File(path, "r")`` opens it while the run goes (a reader sees the rows
+    flushed before it opened the file: open, read and close again for newer ones).
     """
 
     def __init__(self, path: Path, scene, histogram_bins: int | None = None, at: Path | None = None):
@@ -137,7 +139,9 @@ class RunFile:
         self.at.parent.mkdir(parents=True, exist_ok=True)
         require_space(self.at.parent, 64 << 10)
         self.at.unlink(missing_ok=True)  # a new file: never an old one truncated, nor a link followed
-        self.h5 = h5py.File(self.at, "w")
+        # No HDF5 file lock: with one, a reader that opens the file the default way while the run
+        # goes fails (BlockingIOError); two runs never write one file (Outputs.claim's own lock).
+        self.h5 = h5py.File(self.at, "w", locking=False)
         a = self.h5.attrs
         a["scene"] = scene_json(scene)
         a["versions"] = json.dumps(versions())
