@@ -15,7 +15,7 @@ from tqdm import tqdm
 from .checkpoint import Progress, read_checkpoint
 from ..scene.estimates import work_estimate
 from ..scene.load import check_options
-from ..scene.schema import Scene
+from ..scene.schema import ConfigError, Scene
 from .handlers import Checkpoints, Clock, Diagnostics, Frames, Snapshots, Statistics
 from ..output.claim import Outputs
 from ..output.files import RunFile, is_complete, output_error
@@ -77,6 +77,9 @@ def run(scene: Scene, out: str | Path | None = None, progress: bool | None = Non
                               "for it to return, or run scenes in separate processes")
     try:
         if out is None:
+            if checkpoint_every:  # nowhere to write it
+                raise ConfigError(f"checkpoint_every = {checkpoint_every}: a checkpoint is written in the output "
+                                  "folder; give out or drop checkpoint_every")
             return _run(scene, None, opts)
         outputs = Outputs.of(out, scene)
         check_stop()

@@ -372,9 +372,6 @@ def check_options(scene: Scene, *, out: str | Path | None = None, executor: str 
 
     if movie and frames is False:
         raise ConfigError("--movie is made of frames: drop --no-frames or --movie")
-    if checkpoint_every and out is None:
-        raise ConfigError(f"checkpoint_every = {checkpoint_every}: a checkpoint is written in the output folder; "
-                          "give out (--out) or drop checkpoint_every")
     whole("--threads", threads, 1, 4096)
     whole("--checkpoint-every", checkpoint_every, 0, MAX_STEPS)
     whole("--workers", workers, 1, 4 * (os.cpu_count() or 1) if scheduler is None else 100_000)
@@ -401,10 +398,8 @@ def _check_restart(restart: str | Path, scene: Scene) -> None:
     against the solvers comes when it is loaded)."""
     from ..control.checkpoint import check_checkpoint_file
 
-    if not Path(restart).exists():
-        raise ConfigError(f"--restart {restart}: no such checkpoint file")
-    if not Path(restart).is_file():  # a folder, a FIFO (whose read would wait forever), a device
-        raise ConfigError(f"--restart {restart}: not a regular file; give a file written by --checkpoint-every")
+    if not Path(restart).is_file():  # missing, or a folder, a FIFO (whose read would wait forever), a device
+        raise ConfigError(f"--restart {restart}: no such checkpoint file (or not a regular file)")
     check_checkpoint_file(Path(restart), scene)
 
 
