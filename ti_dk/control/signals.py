@@ -42,7 +42,10 @@ def _end_now(signum: int, when: str) -> None:
     """Leave at once with one line, closing nothing (a run file stays marked incomplete, as it was
     created; a lock left behind is taken over by the next run), whatever the process was waiting
     for; not an exception, which a broad ``except`` could take for another error."""
-    os.write(2, f"ti_dk: error: stopped by {signal.Signals(signum).name} {when}\n".encode())
+    try:
+        os.write(2, f"ti_dk: error: stopped by {signal.Signals(signum).name} {when}\n".encode())
+    except OSError:  # stderr gone with its terminal (SIGHUP)
+        pass
     os._exit(128 + signum)
 
 
