@@ -114,3 +114,33 @@ def test_a_fifo_at_an_output_path_is_refused_at_once(tmp_path, where):
     with no_hang(), pytest.raises(ConfigError, match="is not a regular file") as err:
         run(_scene(), out=out)
     assert str(fifo) in str(err.value) and [p.name for p in out.iterdir()] == [fifo.name]
+
+
+@pytest.mark.parametrize("fails", [False, True])
+def test_a_file_put_in_the_stage_during_a_replace_stays(every_part, tmp_path, monkeypatch, fails):
+    """The user's file appears in the stage while a replace runs; the replace finishes (the stage
+    then holds only that file) or fails (the stage, with that file, stays)."""
+    from ti_dk.control.controller import Controller
+    from ti_dk.output.files import OutputError
+
+    out = tmp_path / "out"
+    shutil.copytree(every_part, out)
+    shutil.rmtree(out / f".{STEM}.partial")
+    (out / f"{STEM}_checkpoint.h5").unlink()  # a failed replace keeps no stage then
+    record = Controller.record
+
+    def meanwhile(self, n):
+        record(self, n)
+        if n == 1:
+            (out / f".{STEM}.partial" / "notes.txt").write_text("mine")
+            if fails:
+                raise OSError(28, "No space left on device", "injected")
+
+    monkeypatch.setattr(Controller, "record", meanwhile)
+    if fails:
+        with pytest.raises(OutputError):
+            run(_scene(), out=out, overwrite=True)
+    else:
+        run(_scene(), out=out, overwrite=True)
+    assert (out / f".{STEM}.partial" / "notes.txt").read_text() == "mine"
+    assert len(list((out / f".{STEM}.partial").iterdir())) == (4 if fails else 1)

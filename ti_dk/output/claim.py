@@ -182,6 +182,10 @@ class Outputs:
         _regular(self.checkpoint)
         if self.checkpoint.exists() and not _h5_attrs(self.checkpoint, ("scene", "step")):
             raise ConfigError(f"{self.checkpoint} is not a ti_dk checkpoint: move it away or give another --out")
+        self._refuse_foreign_in_stage()
+
+    def _refuse_foreign_in_stage(self) -> None:
+        """Refuse a stage that holds anything but a staged result of ti_dk's."""
         if self.stage.is_dir():
             for p in self.stage.iterdir():
                 if p.name not in {q.name for q in self.result}:
@@ -229,6 +233,10 @@ class Outputs:
             if finished:
                 self._swap()
             elif not self.checkpoint.exists() or not self.staged(self.run_file).exists():
+                try:
+                    self._refuse_foreign_in_stage()
+                except ConfigError:  # something of the user's was put in it during the run: it stays
+                    return
                 shutil.rmtree(self.stage, ignore_errors=True)
         except OSError as exc:
             raise output_error(self.out, exc) from None
@@ -245,7 +253,10 @@ class Outputs:
                     os.rename(self.staged(final), final)
         finally:
             shutil.rmtree(old, ignore_errors=True)
-        shutil.rmtree(self.stage, ignore_errors=True)
+        try:
+            self.stage.rmdir()  # empty, unless something of the user's was put in it during the run
+        except OSError:
+            pass
 
 
 def _foreign(path: Path) -> ConfigError:
