@@ -63,7 +63,8 @@ def run(scene: Scene, out: str | Path | None = None, progress: bool | None = Non
     ``overwrite`` and only once it has finished (the old one stays whole if it fails or stops).
     A signal seen by :func:`ti_dk.control.signals.stop_on_signals` stops it between steps
     (:class:`ti_dk.control.signals.Stopped`); an I/O failure raises :class:`ti_dk.output.files.OutputError`; both
-    leave the file marked incomplete.
+    leave the file marked incomplete. Taichi runs on the thread that started it, one run at a time:
+    a run from another thread, or while another goes, raises :class:`ti_dk.SimulationError`.
     """
     check_options(scene, out=out, threads=threads, checkpoint_every=checkpoint_every, restart=restart, movie=movie,
                   frames=frames)
