@@ -139,3 +139,25 @@ def file_tree(folder: Path) -> dict[str, str]:
 
     return {str(p.relative_to(folder)): hashlib.sha256(p.read_bytes()).hexdigest()
             for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+def no_hang(seconds: int = 30):
+    """A context in which a call that blocks (a read from a FIFO) fails after ``seconds`` with
+    ``TimeoutError`` (SIGALRM), rather than hanging the test run."""
+    import contextlib
+    import signal
+
+    def expire(signum, frame):
+        raise TimeoutError(f"still waiting after {seconds} s")
+
+    @contextlib.contextmanager
+    def guard():
+        old = signal.signal(signal.SIGALRM, expire)
+        signal.alarm(seconds)
+        try:
+            yield
+        finally:
+            signal.alarm(0)
+            signal.signal(signal.SIGALRM, old)
+
+    return guard()

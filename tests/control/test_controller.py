@@ -281,3 +281,42 @@ def test_large_seeds_run_and_differ(method):
         assert np.isfinite(res.final_density).all()
         finals.append(res.final_density)
     assert not np.array_equal(*finals)
+
+
+def test_a_checkpoint_without_an_output_folder_is_refused():
+    with pytest.raises(ti_dk.ConfigError, match="checkpoint_every = 3: a checkpoint is written in the output folder"):
+        run(load_scene("void1d", cells=[8], t_end=0.001, output_times=[0.001]), checkpoint_every=3)
+
+
+def test_a_run_off_taichis_thread_or_beside_another_is_refused(monkeypatch):
+    """Taichi runs on the thread that started it, one run at a time: anything else is a clear error,
+    not a crashed process."""
+    import threading
+
+    from ti_dk.control.controller import Controller
+
+    scene = load_scene("void1d", cells=[8], t_end=0.001, output_times=[0.001])
+    first = run(scene)  # Taichi started on this thread, if not before
+    raised = []
+
+    def off_thread():
+        try:
+            run(scene)
+        except SimulationError as exc:
+            raised.append(str(exc))
+
+    t = threading.Thread(target=off_thread)
+    t.start()
+    t.join()
+    assert raised and raised[0].startswith("Taichi was started on another thread"), raised
+    advance = Controller.advance
+
+    def nested(self, n):  # a second run while the first one steps
+        with pytest.raises(SimulationError, match="another ti_dk.run is going in this process"):
+            run(scene)
+        advance(self, n)
+
+    monkeypatch.setattr(Controller, "advance", nested)
+    assert np.array_equal(run(scene).final_density, first.final_density)  # and the first goes on unharmed
+    monkeypatch.undo()
+    run(scene)  # the lock is released after each run

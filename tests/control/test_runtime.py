@@ -42,6 +42,11 @@ def test_a_signal_stops_at_the_next_check_only():
             check_stop(" at step 3")
     assert err.value.status == 143
     check_stop()  # the flag is cleared with the handlers
+    with stop_on_signals():
+        os.kill(os.getpid(), signal.SIGHUP)  # a closed terminal: the same as SIGTERM
+        with pytest.raises(Stopped, match="stopped by SIGHUP") as err:
+            check_stop()
+    assert err.value.status == 129
 
 
 def test_stats_of_stacks_rows_without_their_accumulators():

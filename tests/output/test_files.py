@@ -417,3 +417,27 @@ def test_a_restart_in_place_writes_no_frame_through_a_link_planted_among_the_fra
     run(scene, out=out, restart=out / "ellipse2d_fv_checkpoint.h5")
     assert precious.read_bytes() == b"not yours" and not (frames / "frame_0002.png").is_symlink()
     assert _shape(out) == ((8, 8), True)
+
+
+def test_the_run_file_opens_the_default_way_while_the_run_goes(tmp_path, monkeypatch):
+    """Another process opens the run file with h5py's defaults (HDF5's file lock) in the middle of
+    the run, reads the rows flushed so far and sees it unfinished."""
+    import subprocess
+
+    from ti_dk.control.controller import Controller
+
+    seen, record = [], Controller.record
+    script = ("import sys, h5py\nwith h5py.File(sys.argv[1], 'r') as f:\n"
+              "    print(bool(f.attrs['complete']), f['stats/time'].shape[0], f['diagnostics/time'].shape[0])")
+
+    def record_and_read(self, n):
+        record(self, n)
+        if n == 5:
+            r = subprocess.run([sys.executable, "-c", script, str(self.rf.at)], capture_output=True, text=True)
+            seen.append(r.stdout.strip() or r.stderr.strip().splitlines()[-1])
+
+    monkeypatch.setattr(Controller, "record", record_and_read)
+    scene = load_scene("void1d", cells=[32], t_end=0.002, output_times=[0.0, 0.0001, 0.002], C=0.05)
+    assert scene.n_steps >= 10
+    run(scene, out=tmp_path, checkpoint_every=5)  # a checkpoint flushes the diagnostics at step 5
+    assert seen == ["False 2 5"], seen

@@ -471,7 +471,7 @@ def test_signals_stop_cleanly(tmp_path, sig, trial):
     _signal_trial(tmp_path, sig, random.Random(trial * 31 + sig).uniform(0.0, 4.0))
 
 
-@pytest.mark.parametrize("sig, delay", [(signal.SIGINT, 0.0), (signal.SIGTERM, 0.3)])
+@pytest.mark.parametrize("sig, delay", [(signal.SIGINT, 0.0), (signal.SIGTERM, 0.3), (signal.SIGHUP, 0.6)])
 def test_signals_in_the_first_second_stop_cleanly(tmp_path, sig, delay):
     assert _signal_trial(tmp_path, sig, delay, after="start") == "stopped"
 
@@ -492,6 +492,52 @@ def test_signals_stop_cleanly_20_trials(tmp_path, sig):
         outcomes = list(pool.map(lambda k: _signal_trial(tmp_path / str(k), sig, delays[k], "start"), range(20)))
     print(signal.Signals(sig).name, {o: outcomes.count(o) for o in set(outcomes)})
     assert outcomes.count("stopped") >= 15, outcomes
+
+
+HANG = """
+import os, sys
+from ti_dk.control.controller import Controller
+from ti_dk.scene import cli, load
+
+def hang(*args, **kw):  # a read that never returns: a FIFO with no writer
+    print("waiting", flush=True)
+    os.open(sys.argv[1], os.O_RDONLY)
+
+if sys.argv[2] == "load":
+    load.load_scene = hang
+else:
+    Controller.advance = hang
+sys.exit(cli.main(["void1d", "--set", "cells=[8]", "--no-frames", "--no-progress", "--out", "out"]))
+"""
+
+
+@pytest.mark.parametrize("where, sig", [("load", signal.SIGTERM), ("load", signal.SIGHUP), ("step", signal.SIGINT),
+                                        ("step", signal.SIGTERM)])
+def test_a_run_that_hangs_is_ended_by_a_signal_at_once_or_by_the_second(tmp_path, where, sig):
+    """A read that waits forever while the scene loads ends at the first signal; in a step, the first
+    signal waits for the step to end, and a second ends the process at once; each with one line."""
+    import os
+
+    os.mkfifo(tmp_path / "fifo")
+    p = subprocess.Popen([sys.executable, "-c", HANG, str(tmp_path / "fifo"), where], cwd=tmp_path, env=user_env(),
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        assert p.stdout.readline() == "waiting\n"
+        time.sleep(0.2)
+        p.send_signal(sig)
+        if where == "step":
+            with pytest.raises(subprocess.TimeoutExpired):
+                p.wait(timeout=1.0)  # the first one waits for the step, which never ends
+            p.send_signal(sig)
+        _, err = p.communicate(timeout=10)
+    finally:
+        p.kill()
+    name = signal.Signals(sig).name
+    assert p.returncode == 128 + sig and err.count("\n") == 1, err
+    assert err.startswith(f"ti_dk: error: stopped by {name} " + ("a second time" if where == "step" else "before")), err
+    if where == "step":
+        with h5py.File(tmp_path / "out" / "void1d_fv.h5", "r", locking=False) as f:
+            assert not f.attrs["complete"]
 
 
 def test_a_killed_run_keeps_its_diagnostics_up_to_the_last_flush(tmp_path):
@@ -539,6 +585,28 @@ def test_a_full_file_system_ends_with_one_line_and_status_1(tmp_path, mount):
     tiny = mount("size=128k")  # not even room for the run file
     r = cli(*QUICK[:3], "--out", str(tiny / "out"), cwd=tmp_path)
     assert r.returncode == 1 and "the disk is full" in r.stderr and "Traceback" not in r.stderr, r.stderr
+
+
+@pytest.mark.parametrize("kib, started", [(64, False), (1100, True)])
+def test_a_file_size_limit_ends_with_one_line_and_status_1(tmp_path, kib, started):
+    """``ulimit -f``: 64 KiB (no room for the run file) and 1100 KiB (passed half-way); SIGXFSZ is
+    ignored, as Python leaves it, so writes fail with EFBIG."""
+    import resource
+
+    def limit():
+        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+        resource.setrlimit(resource.RLIMIT_FSIZE, (kib << 10, resource.RLIM_INFINITY))
+
+    times = "output_times=[" + ",".join(f"{k / 1000}" for k in range(1, 11)) + "]"
+    r = subprocess.run([sys.executable, "-m", "ti_dk.scene", "void1d", "--ensemble", "4", "--set", times,
+                        "--no-frames", "--no-progress", "--out", "out"], cwd=tmp_path, env=user_env(),
+                       capture_output=True, text=True, timeout=600, preexec_fn=limit)
+    assert r.returncode == 1 and r.stderr.count("\n") == 1 and "Traceback" not in r.stderr, r.stderr
+    assert f"file size limit (ulimit -f: {kib << 10} bytes)" in r.stderr, r.stderr
+    assert (tmp_path / "out" / "void1d_fv.h5").exists() == started
+    if started:
+        with h5py.File(tmp_path / "out" / "void1d_fv.h5") as f:
+            assert not f.attrs["complete"] and "File too large" in f.attrs["error"]
 
 
 def test_a_read_only_output_is_refused_before_the_run(tmp_path, mount, capsys):

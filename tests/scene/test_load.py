@@ -8,7 +8,7 @@ from ti_dk import ConfigError, available_scenes, load_scene
 from ti_dk.scene.schema import ClampWarning, HybridKeys
 from ti_dk.scene.load import parse_value
 
-from ..helpers import ROOT
+from ..helpers import ROOT, no_hang
 
 
 def test_scenes_load_and_override():
@@ -201,3 +201,22 @@ def test_a_potential_is_checked_before_anything_runs():
                      ("exp(1e5*x)", "not finite everywhere")]:
         with pytest.raises(ConfigError, match=msg):
             load_scene("trap1d", potential=bad, init="uniform")
+
+
+@pytest.mark.parametrize("what", ["scene", "npy", "h5", "restart"])
+def test_a_fifo_given_as_an_input_file_is_refused_at_once(tmp_path, what):
+    """A FIFO with no writer as the scene file, as density_file (.npy, file.h5:/q) or as --restart."""
+    import os
+
+    from ti_dk.scene.load import check_options
+
+    fifo = tmp_path / {"scene": "s.toml", "npy": "q.npy", "h5": "q.h5", "restart": "c.h5"}[what]
+    os.mkfifo(fifo)
+    with no_hang(), pytest.raises(ConfigError, match="not a regular file") as err:
+        if what == "scene":
+            load_scene(fifo)
+        elif what == "restart":
+            check_options(load_scene("void1d"), restart=fifo)
+        else:
+            load_scene("void1d", init="array", density_file=f"{fifo}:/q" if what == "h5" else str(fifo))
+    assert str(fifo) in str(err.value) and "\n" not in str(err.value)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 import sys
+import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -14,12 +15,12 @@ from tqdm import tqdm
 from .checkpoint import Progress, read_checkpoint
 from ..scene.estimates import work_estimate
 from ..scene.load import check_options
-from ..scene.schema import Scene
+from ..scene.schema import ConfigError, Scene
 from .handlers import Checkpoints, Clock, Diagnostics, Frames, Snapshots, Statistics
 from ..output.claim import Outputs
 from ..output.files import RunFile, is_complete, output_error
 from ..methods.registry import make_solver  # also where tests and benchmarks build a solver
-from .runtime import Result, init, initialized, stats_of
+from .runtime import Result, init, initialized, started_here, stats_of
 from .signals import SimulationError, check_stop
 from ..methods.solver import Solver
 
@@ -62,21 +63,37 @@ def run(scene: Scene, out: str | Path | None = None, progress: bool | None = Non
     ``overwrite`` and only once it has finished (the old one stays whole if it fails or stops).
     A signal seen by :func:`ti_dk.control.signals.stop_on_signals` stops it between steps
     (:class:`ti_dk.control.signals.Stopped`); an I/O failure raises :class:`ti_dk.output.files.OutputError`; both
-    leave the file marked incomplete.
+    leave the file marked incomplete. Taichi runs on the thread that started it, one run at a time:
+    a run from another thread, or while another goes, raises :class:`ti_dk.SimulationError`.
     """
     check_options(scene, out=out, threads=threads, checkpoint_every=checkpoint_every, restart=restart, movie=movie,
                   frames=frames)
     opts = RunOptions(progress, arch, threads, frames, movie, snapshots, checkpoint_every,
                       Path(restart) if restart is not None else None, member0)
-    if out is None:
-        return _run(scene, None, opts)
-    outputs = Outputs.of(out, scene)
-    check_stop()
-    with outputs.claim(overwrite, fresh=restart is None) as outputs:
-        try:
-            return _run(scene, outputs, opts)
-        except OSError as exc:  # disk full, quota, permission: the run file is already closed
-            raise output_error(outputs.out, exc) from None
+    if not started_here():
+        raise SimulationError("Taichi was started on another thread, and runs only on that one: call ti_dk.run "
+                              "from the thread that started it, or run scenes in separate processes")
+    if not _ONE_RUN.acquire(blocking=False):  # two at once crash Taichi (runtime.started_here)
+        raise SimulationError("another ti_dk.run is going in this process, and Taichi runs one at a time: wait "
+                              "for it to return, or run scenes in separate processes")
+    try:
+        if out is None:
+            if checkpoint_every:  # nowhere to write it
+                raise ConfigError(f"checkpoint_every = {checkpoint_every}: a checkpoint is written in the output "
+                                  "folder; give out or drop checkpoint_every")
+            return _run(scene, None, opts)
+        outputs = Outputs.of(out, scene)
+        check_stop()
+        with outputs.claim(overwrite, fresh=restart is None) as outputs:
+            try:
+                return _run(scene, outputs, opts)
+            except OSError as exc:  # disk full, quota, permission: the run file is already closed
+                raise output_error(outputs.out, exc) from None
+    finally:
+        _ONE_RUN.release()
+
+
+_ONE_RUN = threading.Lock()  # held by the run going in this process (one at a time)
 
 
 def _run(scene: Scene, outputs: Outputs | None, opts: RunOptions) -> Result:
@@ -203,7 +220,8 @@ class Controller:
         """The MP4 of every frame."""
         if self.frames.writer:
             t0 = time.perf_counter()
-            self.frames.writer.movie(self.outputs.staged(self.outputs.movie))
+            movie = self.frames.writer.movie(self.outputs.staged(self.outputs.movie))
+            self.rf.annotate("movie_bytes", movie.stat().st_size)  # what tells a later run the movie is ours
             self.written["movie"] = self.outputs.movie
             self.clock.add("render", t0)
 

@@ -10,7 +10,6 @@ and counted once.
 import math
 import os
 import sys
-import threading
 import time
 from pathlib import Path
 
@@ -27,7 +26,6 @@ from ..output.files import (RunFile, atomic_h5, output_error, read_group, read_r
 from ..core.stats import CellStats
 
 EXECUTORS = ("local", "dask")
-_INIT_THREAD = None  # the worker thread that started Taichi in this process
 
 
 def chunks(ensemble: int, size: int) -> list[tuple[int, int]]:
@@ -47,10 +45,8 @@ def run_chunk(scene: Scene, member0: int, threads: int | None = None) -> dict:
     # ids, on which the offline cache is keyed): a reset dumps the offline cache, and a worker
     # killed while dumping leaves its lock behind, after which every process on that cache
     # compiles everything and warns (measured: tests/control/test_ensemble.py's killed worker).
-    global _INIT_THREAD
-    if _INIT_THREAD != threading.get_ident():  # Taichi breaks when started in another thread (an
+    if not runtime.started_by_this_thread():  # Taichi breaks when started in another thread (an
         runtime.init("cpu", threads)  # unguarded ti_dk.init in a script Dask re-imports): start it here
-        _INIT_THREAD = threading.get_ident()
     res = controller.run(scene, progress=False, member0=member0)
     return {"member0": member0, "times": res.times, "rows": res.rows, "diagnostics": res.diagnostics,
             "final_density": res.final_density, "wall_time": res.wall_time}

@@ -4,6 +4,7 @@ from __future__ import annotations
 import contextlib
 import ctypes
 import io
+import threading
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -31,8 +32,27 @@ def init(arch: str = "cpu", threads: int | None = None) -> None:
     kw = {"cpu_max_num_threads": threads} if threads else {}
     with contextlib.redirect_stdout(io.StringIO()):  # ti.init prints "[Taichi] Starting on arch=..." unasked
         ti.init(arch=ARCHS[arch], default_fp=ti.f64, offline_cache=True, log_level=ti.WARN, **kw)
+    _STARTED["thread"] = threading.get_ident()
     if ti.lang.impl.current_cfg().arch != ARCHS[arch]:
         raise ConfigError(f"the '{arch}' backend is not available on this machine: run with --arch cpu")
+
+
+_STARTED = {"thread": None}  # the thread that started Taichi through init (None: not started by ti_dk)
+
+
+def started_here() -> bool:
+    """Whether Taichi may run on this thread: it was started on it (by :func:`init`), or not by
+    ti_dk (then nothing is known), or not at all.
+
+    Taichi's LLVM backend works only on the thread that started it. Symptom of a run on another:
+    ``RuntimeError: [llvm_context.cpp:add_struct_module] Assertion failure: this_thread ==
+    main_thread``, and with two such runs at once the process dies (SIGSEGV or SIGABRT)."""
+    return _STARTED["thread"] in (None, threading.get_ident()) or not initialized()
+
+
+def started_by_this_thread() -> bool:
+    """Whether :func:`init` started Taichi on this very thread."""
+    return _STARTED["thread"] == threading.get_ident() and initialized()
 
 
 def _keep_freed_memory() -> None:

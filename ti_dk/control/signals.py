@@ -14,25 +14,52 @@ class SimulationError(RuntimeError):
 
 
 class Stopped(SimulationError):
-    """SIGTERM or SIGINT arrived: the run stopped between two steps, its output closed and marked
-    incomplete. ``status``: the exit status a shell gives for that signal (143, 130)."""
+    """SIGTERM, SIGINT or SIGHUP arrived: the run stopped between two steps, its output closed and
+    marked incomplete. ``status``: the exit status a shell gives for that signal (143, 130, 129)."""
 
     def __init__(self, message: str, status: int):
         super().__init__(message)
         self.status = status  # 128 + the signal's number
 
 
-_STOP: dict = {"signal": None}  # set by the handlers of stop_on_signals(), read between steps
+# set by the handlers of stop_on_signals(), read between steps; "at_once": end in the handler itself
+_STOP: dict = {"signal": None, "at_once": False}
 
 
-SIGNALS = (signal.SIGTERM, signal.SIGINT)  # the signals that stop a run cleanly
+SIGNALS = (signal.SIGTERM, signal.SIGINT, signal.SIGHUP)  # the signals that stop a run cleanly
 
 
 def _handler(signum, frame):
-    if _STOP["signal"] is not None:  # asked twice: stop at once, the default way
-        signal.signal(signum, signal.SIG_DFL)
-        os.kill(os.getpid(), signum)
+    if _STOP["signal"] is not None:  # asked twice: the run did not reach its next check
+        _end_now(signum, "a second time: ended at once, without waiting for the current step (the run file, "
+                         "if any, stays marked incomplete)")
+    if _STOP["at_once"]:
+        _end_now(signum, "before the run began")
     _STOP["signal"] = signum
+
+
+def _end_now(signum: int, when: str) -> None:
+    """Leave at once with one line, closing nothing (a run file stays marked incomplete, as it was
+    created; a lock left behind is taken over by the next run), whatever the process was waiting
+    for; not an exception, which a broad ``except`` could take for another error."""
+    try:
+        os.write(2, f"ti_dk: error: stopped by {signal.Signals(signum).name} {when}\n".encode())
+    except OSError:  # stderr gone with its terminal (SIGHUP)
+        pass
+    os._exit(128 + signum)
+
+
+@contextlib.contextmanager
+def stop_at_once():
+    """A signal in here ends the process from its handler (:func:`_end_now`), even in a read that
+    waits forever; for what comes before a run writes anything (reading the scene and its files,
+    starting Taichi), where nothing can be left half-written."""
+    check_stop()
+    before, _STOP["at_once"] = _STOP["at_once"], True
+    try:
+        yield
+    finally:
+        _STOP["at_once"] = before
 
 
 def catch_early() -> None:
@@ -45,9 +72,10 @@ def catch_early() -> None:
 
 @contextlib.contextmanager
 def stop_on_signals():
-    """SIGTERM and SIGINT set a flag that the run checks between steps (and after Taichi's start and
-    the kernels' compilation), instead of raising wherever Python happens to be; handlers restored after.
-    A signal caught since :func:`catch_early` is kept."""
+    """SIGTERM, SIGINT and SIGHUP set a flag that the run checks between steps (and after Taichi's
+    start and the kernels' compilation), instead of raising wherever Python happens to be; inside
+    :func:`stop_at_once`, or for a second signal before that check, the handler ends the process
+    itself, with one line (:func:`_end_now`). Handlers restored after. A signal caught since :func:`catch_early` is kept."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return

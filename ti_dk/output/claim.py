@@ -13,7 +13,9 @@ from __future__ import annotations
 
 import fcntl
 import os
+import re
 import shutil
+import stat
 import sys
 import tempfile
 from contextlib import contextmanager
@@ -24,6 +26,10 @@ import h5py
 
 from ..scene.schema import ConfigError
 from .files import is_complete, output_error
+
+# what ti_dk writes inside its folders (a frame, S(k), a snapshot or one a killed run left half-written)
+OURS_IN = {"frames": re.compile(r"frame_\d{4,}\.png|structure_factor\.png"),
+           "snapshots": re.compile(r"data\d{6}\.h5(\.\w+\.tmp)?")}
 
 
 @dataclass(frozen=True)
@@ -112,6 +118,7 @@ class Outputs:
         if self.lock.is_symlink():
             raise ConfigError(f"{self.lock} is a symbolic link: ti_dk never writes through links; remove it or "
                               "give another --out")
+        _regular(self.lock)
         try:
             self.out.mkdir(parents=True, exist_ok=True)
         except OSError as exc:
@@ -135,7 +142,10 @@ class Outputs:
                 pass
             os.close(fd)  # its holder removed it between our open and our lock: take the new one
         try:
-            left = os.pread(fd, 32, 0).decode(errors="replace").strip()
+            left = os.pread(fd, 64, 0).decode(errors="replace").strip()
+            if not left.isdigit() and left:  # never a pid that ti_dk wrote: the user's file, left as it was
+                os.close(fd)
+                raise _foreign(self.lock)
             if left:
                 print(f"ti_dk: note: {self.lock} was left by run pid {left}, which ended without removing it "
                       "(a stale lock, no run holds it): taking it over", file=sys.stderr)
@@ -156,7 +166,9 @@ class Outputs:
         os.close(fd)
 
     def _refuse_foreign(self) -> None:
-        """Refuse links and files that ti_dk did not write at the output's paths."""
+        """Refuse links, and anything at the output's paths that ti_dk cannot tell it wrote: it removes
+        or replaces only its own run file, checkpoint, lock, frames, snapshots, stage and a movie its
+        run file records (:meth:`_refuse_foreign_parts`)."""
         for p in (*self.result, self.checkpoint, self.chunks, self.stage):
             if p.is_symlink():
                 raise ConfigError(f"{p} is a symbolic link: ti_dk never writes through links; remove it or give "
@@ -166,8 +178,38 @@ class Outputs:
             if p.exists() and p.is_dir() != folder:
                 raise ConfigError(f"{p} is a {'file' if folder else 'folder'} that ti_dk did not write: move it "
                                   "away or give another --out")
-        if self.run_file.exists() and not is_run_file(self.run_file):
-            raise ConfigError(f"{self.run_file} is not a ti_dk run file: move it away or give another --out")
+        self._refuse_foreign_parts()
+        _regular(self.checkpoint)
+        if self.checkpoint.exists() and not _h5_attrs(self.checkpoint, ("scene", "step")):
+            raise ConfigError(f"{self.checkpoint} is not a ti_dk checkpoint: move it away or give another --out")
+        self._refuse_foreign_in_stage()
+
+    def _refuse_foreign_in_stage(self) -> None:
+        """Refuse a stage that holds anything but a staged result of ti_dk's."""
+        if self.stage.is_dir():
+            for p in self.stage.iterdir():
+                if p.name not in {q.name for q in self.result}:
+                    raise _foreign(p)
+            replace(self, staging=True)._refuse_foreign_parts()
+
+    def _refuse_foreign_parts(self) -> None:
+        """Refuse a result (in place, or staged) with a part ti_dk cannot tell it wrote: a run file
+        that is not one, a movie its run file does not record (``movie_bytes``), anything in the
+        frames or snapshots folders but ti_dk's files."""
+        run_file, movie = self.staged(self.run_file), self.staged(self.movie)
+        for part in (run_file, movie):
+            _regular(part)
+        attrs = _h5_attrs(run_file, ("scene", "versions", "complete")) if run_file.exists() else {}
+        if attrs is None:
+            raise ConfigError(f"{run_file} is not a ti_dk run file: move it away or give another --out")
+        if movie.exists() and attrs.get("movie_bytes") != movie.stat().st_size:
+            raise ConfigError(f"{movie} was not written by ti_dk (its run file records no such movie): move it "
+                              "away or give another --out")
+        for part, name in ((self.frames, "frames"), (self.snapshots, "snapshots")):
+            folder = self.staged(part)
+            for p in folder.iterdir() if folder.is_dir() else ():
+                if not OURS_IN[name].fullmatch(p.name) or (p.is_dir() and not p.is_symlink()):
+                    raise _foreign(p)
 
     def _prepare(self, fresh: bool) -> None:
         """For a fresh run, no stage left by an earlier one and, in place, no part of an unfinished
@@ -191,12 +233,17 @@ class Outputs:
             if finished:
                 self._swap()
             elif not self.checkpoint.exists() or not self.staged(self.run_file).exists():
+                try:
+                    self._refuse_foreign_in_stage()
+                except ConfigError:  # something of the user's was put in it during the run: it stays
+                    return
                 shutil.rmtree(self.stage, ignore_errors=True)
         except OSError as exc:
             raise output_error(self.out, exc) from None
 
     def _swap(self) -> None:
         """Move the old result aside, the staged one into place (each a rename), then drop the old."""
+        replace(self, staging=False)._refuse_foreign_parts()  # nothing of the user's came in meanwhile
         old = Path(tempfile.mkdtemp(prefix=f".{self.stem}.old.", dir=self.out))
         try:
             for final in self.result:
@@ -206,13 +253,32 @@ class Outputs:
                     os.rename(self.staged(final), final)
         finally:
             shutil.rmtree(old, ignore_errors=True)
-        shutil.rmtree(self.stage, ignore_errors=True)
+        try:
+            self.stage.rmdir()  # empty, unless something of the user's was put in it during the run
+        except OSError:
+            pass
 
 
-def is_run_file(path: Path) -> bool:
-    """Whether ``path`` is an HDF5 file that ti_dk wrote as a run file (complete or not)."""
+def _foreign(path: Path) -> ConfigError:
+    return ConfigError(f"{path} was not written by ti_dk: move it away or give another --out")
+
+
+def _regular(path: Path) -> None:
+    """Refuse something at ``path`` that is not a regular file (a FIFO, a device: a read would wait
+    forever); links are refused apart, and nothing at all is fine."""
+    try:
+        mode = os.lstat(path).st_mode
+    except FileNotFoundError:
+        return
+    if not stat.S_ISREG(mode) and not stat.S_ISLNK(mode) and not stat.S_ISDIR(mode):
+        raise ConfigError(f"{path} is not a regular file (a FIFO or a device): ti_dk writes only files it made; "
+                          "move it away or give another --out")
+
+
+def _h5_attrs(path: Path, needed: tuple[str, ...]) -> dict | None:
+    """The root attributes of an HDF5 file of ti_dk's that has all of ``needed``, or None."""
     try:
         with h5py.File(path, "r", locking=False) as f:
-            return "scene" in f.attrs and "versions" in f.attrs and "complete" in f.attrs
+            return dict(f.attrs) if all(k in f.attrs for k in needed) else None
     except (OSError, ValueError):
-        return False
+        return None

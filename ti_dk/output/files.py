@@ -3,9 +3,11 @@ from __future__ import annotations
 
 import errno
 import json
+import math
 import os
 import platform
 import re
+import resource
 import tempfile
 import time
 from contextlib import contextmanager
@@ -34,13 +36,16 @@ class OutputError(RuntimeError):
 def output_error(path: Path, exc: OSError) -> OutputError:
     """The one-line message for an I/O failure on ``path``, saying what to change."""
     why = {errno.ENOSPC: "the disk is full", errno.EDQUOT: "the disk quota is exceeded",
-           errno.EACCES: "permission denied", errno.EROFS: "the file system is read-only"}
+           errno.EACCES: "permission denied", errno.EROFS: "the file system is read-only",
+           errno.EFBIG: f"the file would pass this process's file size limit (ulimit -f: {_size_limit()} bytes)"}
     code = exc.errno
     if code is None:  # HDF5 reports the system error inside its message: "... errno = 28, ..."
         found = re.search(r"errno = (\d+)", str(exc))
         code = int(found.group(1)) if found else None
     reason = why.get(code) or exc.strerror or str(exc).splitlines()[0]
     remedy = "free space or give another --out" if code in (errno.ENOSPC, errno.EDQUOT) else \
+        "raise the limit (ulimit -f unlimited) or write less (fewer output times, members or cells)" \
+        if code == errno.EFBIG else \
         "give another --out" if code == errno.ENAMETOOLONG else "give a directory you can write with --out"
     return OutputError(f"cannot write {path}: {reason}; {remedy}")
 
@@ -49,7 +54,9 @@ SPACE_RESERVE = 1 << 20  # bytes kept free on the output's file system (HDF5 met
 
 
 def require_space(path: Path, nbytes: float) -> None:
-    """Raise ENOSPC *before* writing ``nbytes`` near ``path`` would leave less than ``SPACE_RESERVE``.
+    """Raise ENOSPC *before* writing ``nbytes`` near ``path`` would leave less than ``SPACE_RESERVE``,
+    and EFBIG before it would bring the file ``path`` (a new one, if a folder) within
+    ``SPACE_RESERVE`` of the process's file size limit (``ulimit -f``, ``RLIMIT_FSIZE``).
 
     HDF5 cannot recover from a write that fails for want of space: its metadata cache retries the
     flush forever and the process can crash when the file is released. Refusing the write first
@@ -59,6 +66,15 @@ def require_space(path: Path, nbytes: float) -> None:
     st = os.statvfs(folder)
     if st.f_bavail * st.f_frsize < nbytes + SPACE_RESERVE:
         raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(path))
+    size = path.stat().st_size if path.is_file() else 0
+    if size + nbytes + SPACE_RESERVE > _size_limit():
+        raise OSError(errno.EFBIG, os.strerror(errno.EFBIG), str(path))
+
+
+def _size_limit() -> float:
+    """The largest file this process may write, in bytes (``ulimit -f``; inf without a limit)."""
+    limit = resource.getrlimit(resource.RLIMIT_FSIZE)[0]
+    return math.inf if limit == resource.RLIM_INFINITY else limit
 
 
 def frame_file(directory: Path, k: int) -> Path:
@@ -86,7 +102,8 @@ class RunFile:
     """One run's HDF5 file.
 
     Layout: attributes ``scene`` (JSON), ``versions`` (JSON), ``seed``, ``complete``,
-    ``wall_time``, ``timing``; ``/stats/time``, ``/stats/n_samples`` and
+    ``wall_time``, ``timing``, ``movie_bytes`` (with a movie: its size, which marks it as this
+    run's); ``/stats/time``, ``/stats/n_samples`` and
     ``/stats/{mean,variance,skewness,kurtosis}`` shaped ``(n_rows, *cells)``, optional
     ``/stats/histogram`` ``(n_rows, *cells, bins)`` with attribute ``lo`` and
     ``/stats/histogram_outside``, optional ``/stats/structure_factor`` ``(n_rows, *half cells)``
@@ -111,7 +128,9 @@ class RunFile:
     them in every file, ``omitted`` those this file leaves out.
 
     Every row is flushed when written; ``complete`` turns true only at the end, so a killed run
-    leaves a readable file that says it is unfinished.
+    leaves a readable file that says it is unfinished. The file is written without HDF5's file
+    lock, so that ``h5py.File(path, "r")`` opens it while the run goes (a reader sees the rows
+    flushed before it opened the file: open, read and close again for newer ones).
     """
 
     def __init__(self, path: Path, scene, histogram_bins: int | None = None, at: Path | None = None):
@@ -120,7 +139,9 @@ class RunFile:
         self.at.parent.mkdir(parents=True, exist_ok=True)
         require_space(self.at.parent, 64 << 10)
         self.at.unlink(missing_ok=True)  # a new file: never an old one truncated, nor a link followed
-        self.h5 = h5py.File(self.at, "w")
+        # No HDF5 file lock: with one, a reader that opens the file the default way while the run
+        # goes fails (BlockingIOError); two runs never write one file (Outputs.claim's own lock).
+        self.h5 = h5py.File(self.at, "w", locking=False)
         a = self.h5.attrs
         a["scene"] = scene_json(scene)
         a["versions"] = json.dumps(versions())
@@ -211,6 +232,7 @@ class RunFile:
     def annotate(self, name: str, value) -> None:
         """Set the root attribute ``name`` (JSON text for a dict: ``timing``, ``chunks``)."""
         self.h5.attrs[name] = json.dumps(value) if isinstance(value, dict) else value
+        self.h5.flush()
 
     def close(self, wall_time: float | None = None, error: str | None = None) -> None:
         """Close the file, marked complete only without ``error``; after an I/O error, as far as the

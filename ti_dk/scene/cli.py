@@ -1,8 +1,9 @@
 """``python -m ti_dk.scene NAME|PATH``: run a scene from the command line.
 
 Exit status: 0 done; 2 bad input (one line saying what to change; nothing written); 1 the run
-failed (I/O error, unstable scheme; the output is marked incomplete); 130/143 stopped by SIGINT or
-SIGTERM (output closed and marked incomplete).
+failed (I/O error, unstable scheme; the output is marked incomplete); 130/143/129 stopped by SIGINT,
+SIGTERM or SIGHUP (output closed and marked incomplete; a second signal before the current step
+ends leaves at once, the output marked incomplete as it was created).
 """
 from __future__ import annotations
 
@@ -84,6 +85,23 @@ def main(argv: list[str] | None = None) -> int:
 
 def _run(args: argparse.Namespace) -> int:
     """The run the parsed command line asks for; its summary on stdout."""
+    with signals.stop_at_once():  # nothing written yet: a signal ends even a read that waits
+        scene = _prepare(args)
+    _announce(scene)
+    if args.executor == "dask":
+        result = ensemble.run(scene, "dask", out=args.out, progress=not args.no_progress, chunk=args.chunk,
+                              workers=args.workers or 2, threads=args.threads or 1,
+                              scheduler=args.scheduler, overwrite=args.overwrite)
+    else:
+        result = controller.run(scene, out=args.out, progress=not args.no_progress, frames=not args.no_frames,
+                                movie=args.movie, snapshots=not args.no_snapshots, overwrite=args.overwrite,
+                                checkpoint_every=args.checkpoint_every, restart=args.restart)
+    print(controller.summary(result))
+    return 0
+
+
+def _prepare(args: argparse.Namespace) -> schema.Scene:
+    """The scene the command line asks for, its options checked and Taichi started."""
     overrides = load.command_overrides(args.set, {k: getattr(args, k) for k in load.FLAGS})
     if args.quick and "cells" in overrides:
         raise schema.ConfigError("--quick sets the cells (a quarter per axis): drop it or --set cells")
@@ -104,17 +122,7 @@ def _run(args: argparse.Namespace) -> int:
     signals.check_stop()
     runtime.init(args.arch, args.threads)
     signals.check_stop()
-    _announce(scene)
-    if args.executor == "dask":
-        result = ensemble.run(scene, "dask", out=args.out, progress=not args.no_progress, chunk=args.chunk,
-                              workers=args.workers or 2, threads=args.threads or 1,
-                              scheduler=args.scheduler, overwrite=args.overwrite)
-    else:
-        result = controller.run(scene, out=args.out, progress=not args.no_progress, frames=not args.no_frames,
-                                movie=args.movie, snapshots=not args.no_snapshots, overwrite=args.overwrite,
-                                checkpoint_every=args.checkpoint_every, restart=args.restart)
-    print(controller.summary(result))
-    return 0
+    return scene
 
 
 def quick_scene(scene_arg: str, overrides: dict, scene: schema.Scene) -> tuple[schema.Scene, str]:

@@ -7,6 +7,9 @@ measured from the domain's lower corner. Parameters after ``x`` become scene key
 """
 from __future__ import annotations
 
+import errno
+import os
+import stat
 from pathlib import Path
 
 import numpy as np
@@ -18,6 +21,22 @@ CONTEXT = ("x", "weights")  # arguments density_ppc supplies; the rest are scene
 
 class InitError(ValueError):
     """An initial condition that cannot be made on this grid; the message says what to change."""
+
+
+def open_regular(path: str | Path):
+    """``path`` opened for reading in binary, refused unless it is a regular file: a FIFO or a
+    device would make the read wait forever (opened without blocking, so that even a FIFO with no
+    writer is only looked at). Raises ``IsADirectoryError`` for a folder, ``OSError`` (``EINVAL``)
+    for anything else that is not a file."""
+    fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | os.O_CLOEXEC)
+    mode = os.fstat(fd).st_mode
+    if not stat.S_ISREG(mode):
+        os.close(fd)
+        if stat.S_ISDIR(mode):
+            raise IsADirectoryError(errno.EISDIR, "is a directory", str(path))
+        raise OSError(errno.EINVAL, "not a regular file (a FIFO or a device, whose read could wait forever)",
+                      str(path))
+    return os.fdopen(fd, "rb")
 
 
 def uniform(x, ppc: float = 5.0):
@@ -75,13 +94,14 @@ def array(x, density_file: str = ""):
         if dataset:
             import h5py
 
-            with h5py.File(path + ".h5", "r") as f:
+            with open_regular(path + ".h5") as fh, h5py.File(fh, "r") as f:
                 q = np.asarray(f[dataset], dtype=np.float64)
         else:
-            q = np.asarray(np.load(Path(density_file), allow_pickle=False), dtype=np.float64)
+            with open_regular(density_file) as fh:
+                q = np.asarray(np.load(fh, allow_pickle=False), dtype=np.float64)
     except (OSError, KeyError, ValueError, TypeError) as exc:
-        raise InitError(f"cannot read {density_file!r} ({type(exc).__name__}: {exc}); give a .npy file "
-                        "or file.h5:/dataset") from None
+        why = exc.strerror if isinstance(exc, OSError) and exc.strerror else f"{type(exc).__name__}: {exc}"
+        raise InitError(f"cannot read {density_file!r} ({why}); give a .npy file or file.h5:/dataset") from None
     if q.shape != shape:
         raise InitError(f"{density_file!r} holds an array of shape {list(q.shape)}: give one of shape {list(shape)} "
                         "(the cells)")

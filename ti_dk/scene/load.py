@@ -48,7 +48,8 @@ def _read_toml(name_or_path: str | Path) -> tuple[str, dict[str, Any]]:
             f"unknown scene '{name_or_path}': give a .toml path or one of {', '.join(available_scenes())}"
         )
     try:
-        raw = tomllib.loads(path.read_bytes().decode("utf-8"))
+        with initial.open_regular(path) as f:
+            raw = tomllib.loads(f.read().decode("utf-8"))
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{path}: not valid TOML ({exc}): fix the file") from None
     except UnicodeDecodeError:
@@ -398,8 +399,8 @@ def _check_restart(restart: str | Path, scene: Scene) -> None:
     against the solvers comes when it is loaded)."""
     from ..control.checkpoint import check_checkpoint_file
 
-    if not Path(restart).is_file():
-        raise ConfigError(f"--restart {restart}: no such checkpoint file")
+    if not Path(restart).is_file():  # missing, or a folder, a FIFO (whose read would wait forever), a device
+        raise ConfigError(f"--restart {restart}: no such checkpoint file (or not a regular file)")
     check_checkpoint_file(Path(restart), scene)
 
 
