@@ -195,3 +195,36 @@ def test_a_potential_is_checked_before_anything_runs():
                      ("exp(1e5*x)", "not finite everywhere")]:
         with pytest.raises(ConfigError, match=msg):
             load_scene("trap1d", potential=bad, init="uniform")
+
+
+HUGE = 10**400  # a whole number beyond the largest float
+NUMERIC_INIT_SCENES = {"void1d": ("ppc", "void_lo", "void_hi"),
+                       "ellipse2d": ("ppc_outer", "ppc_inner", "outer_r", "inner_r"),
+                       "sphere3d": ("inner_x", "inner_y", "inner_z")}
+LIST_KEYS = {"cells": lambda v: [v], "lengths": lambda v: [v], "reservoir_ppc": lambda v: [[v, 0]],
+             "output_times": lambda v: [0.001, v], "histogram": lambda v: [0, v], "t_equil": lambda v: v}
+
+
+def _numeric_keys():
+    from ti_dk.scene.schema import KEYS
+    init_keys = {k: scene for scene, ks in NUMERIC_INIT_SCENES.items() for k in ks}
+    for name, k in KEYS.items():
+        if k.kind in ("real", "int"):
+            yield init_keys.get(name, "void1d"), name, (lambda v: v)
+    yield from (("void1d", name, wrap) for name, wrap in LIST_KEYS.items())
+
+
+@pytest.mark.parametrize("scene, name, wrap", list(_numeric_keys()), ids=lambda v: v if isinstance(v, str) else "")
+@pytest.mark.parametrize("sign", [1, -1])
+def test_a_whole_number_beyond_float_is_refused_in_one_line_for_every_numeric_key(scene, name, wrap, sign, tmp_path):
+    """Every numeric key, scalar or list entry, by override, --set and scene file: a ConfigError naming the key."""
+    value = wrap(sign * HUGE)
+    path = tmp_path / "huge.toml"  # the key at the top of a copy of the scene file, its own line there dropped
+    text = (ROOT / "scenes" / f"{scene}.toml").read_text().replace(f"\n{name} =", f"\n# {name} =")
+    path.write_text(f"{name} = {value}\n{text}")
+    for load in (lambda: load_scene(scene, **{name: value}),
+                 lambda: load_scene(scene, **{name: parse_value(str(value), name)}),
+                 lambda: load_scene(path)):
+        with pytest.raises(ConfigError) as err:
+            load()
+        assert name in str(err.value) and "\n" not in str(err.value) and len(str(err.value)) < 300

@@ -121,13 +121,23 @@ class Key:
             return value
         if isinstance(value, bool) or not isinstance(value, (int, float)) or (
                 self.kind == "int" and not isinstance(value, int)):
-            raise ConfigError(f"{name} = {value!r}: give {'a whole number' if self.kind == 'int' else 'a number'}")
+            raise ConfigError(f"{name} = {_shown(value)}: give {'a whole number' if self.kind == 'int' else 'a number'}")
         if self.kind == "real":
-            value = float(value)
+            try:
+                value = float(value)
+            except OverflowError:  # a whole number beyond the largest float, 1.8e308
+                raise ConfigError(f"{name} = {_shown(value)}: beyond double precision; give {self.describe()}") from None
         below = self.lo is not None and (value < self.lo or (self.above and value == self.lo))
-        if not math.isfinite(value) or below or (self.hi is not None and value > self.hi):
-            raise ConfigError(f"{name} = {value!r}: give {self.describe()}")
+        big = self.kind == "int" and self.hi is None and abs(value) > 2**63 - 1  # no key takes more than 64 bits
+        if (self.kind == "real" and not math.isfinite(value)) or below or big or (self.hi is not None and value > self.hi):
+            raise ConfigError(f"{name} = {_shown(value)}: give {self.describe()}" + " below 2^63" * big)
         return value
+
+
+def _shown(value: Any) -> str:
+    """A value as a message shows it: a whole number of many digits by its first ones and its size."""
+    text = repr(value)
+    return text if len(text) <= 24 else f"{text[:8]}… (a {len(text.lstrip('-'))}-digit number)"
 
 
 def key(kind: str, doc: str, default: Any = dataclasses.MISSING, flat: str | None = None, **limits) -> Any:
