@@ -37,7 +37,7 @@ def _mean_after(scene, steps: int, ppc=None) -> tuple[np.ndarray, np.ndarray]:
 
 @pytest.mark.parametrize("overrides", [
     dict(),  # 1D Neumann trap
-    dict(cells=[12, 10], boundary=["neumann", "periodic"], potential="((x-0.4)/0.2)**2 + 2*sin(2*pi*y) + x*y"),
+    dict(cells=[12, 10], boundary=["neumann", "periodic"], potential="((x-0.4)/0.2)**2 + 2*sin(2*pi*y) + x*sin(2*pi*y)"),  # periodic in y
 ], ids=["trap1d", "2d-neumann-periodic"])
 def test_the_deterministic_scheme_keeps_the_boltzmann_profile(overrides):
     scene = load_scene("trap1d", method="gaussian", ensemble=2, **overrides)

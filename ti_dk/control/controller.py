@@ -13,7 +13,8 @@ from tqdm import tqdm
 
 from .checkpoint import Progress, read_checkpoint
 from ..scene.estimates import work_estimate
-from ..scene.load import check_options
+from ..scene.checks import check_initial
+from ..scene.load import check_options, scene_of
 from ..scene.schema import Scene
 from .handlers import Checkpoints, Clock, Diagnostics, Frames, Snapshots, Statistics
 from ..output.claim import Outputs
@@ -41,11 +42,12 @@ class RunOptions:
     member0: int = 0  # the global index of the first member (a chunk of a larger ensemble)
 
 
-def run(scene: Scene, out: str | Path | None = None, progress: bool | None = None,
+def run(scene: Scene | str | Path, out: str | Path | None = None, progress: bool | None = None,
         arch: str = "cpu", threads: int | None = None, *, frames: bool | None = None, movie: bool = False,
         snapshots: bool | None = None, checkpoint_every: int = 0, restart: str | Path | None = None,
         member0: int = 0, overwrite: bool = False) -> Result:
-    """Run a scene; return its statistics and, with ``out``, write its files there.
+    """Run a scene (a :class:`Scene`, validated again here, or a scene name or path); return its
+    statistics and, with ``out``, write its files there.
 
     Rows are taken at ``scene.output_steps`` over the ensemble; a stationary scene (``t_equil``
     set) pools every ``sample_every``-th step after ``t_equil`` into one row. With ``out``:
@@ -64,8 +66,9 @@ def run(scene: Scene, out: str | Path | None = None, progress: bool | None = Non
     (:class:`ti_dk.control.signals.Stopped`); an I/O failure raises :class:`ti_dk.output.files.OutputError`; both
     leave the file marked incomplete.
     """
+    scene = scene_of(scene)
     check_options(scene, out=out, threads=threads, checkpoint_every=checkpoint_every, restart=restart, movie=movie,
-                  frames=frames)
+                  frames=frames, member0=member0)
     opts = RunOptions(progress, arch, threads, frames, movie, snapshots, checkpoint_every,
                       Path(restart) if restart is not None else None, member0)
     if out is None:
@@ -116,8 +119,10 @@ def _run(scene: Scene, outputs: Outputs | None, opts: RunOptions) -> Result:
 
 
 def _solvers(scene: Scene, member0: int) -> tuple[Solver, Solver | None]:
-    """The scene's solver and that of the method run alongside (``scene.method.compare``), if any."""
-    ppc = scene.initial_ppc
+    """The scene's solver and that of the method run alongside (``scene.method.compare``), if any,
+    from the initial density checked as it is read (a density file may have changed since the
+    scene was loaded)."""
+    ppc = check_initial(scene)
     try:
         solver = make_solver(scene, ppc, member0)
         other = make_solver(scene.replace(method=scene.method.compare), ppc, member0) if scene.method.compare else None
