@@ -67,7 +67,7 @@ def parse(text: str) -> tuple:
         raise ExprError("give a formula in x, y, z as text")
     too_big = f"give a formula of at most {MAX_CHARS:,} characters and {MAX_DEPTH} levels of nesting"
     if len(text) > MAX_CHARS:
-        raise ExprError(f"{text[:20]!r}… is {len(text):,} characters long: {too_big}")
+        raise ExprError(f"{quoted(text)} is too long: {too_big}")
     try:
         body = ast.parse(text.strip(), mode="eval").body
     except SyntaxError:

@@ -76,12 +76,15 @@ def array(x, density_file: str = ""):
             import h5py
 
             with h5py.File(path + ".h5", "r") as f:
-                q = np.asarray(f[dataset], dtype=np.float64)
+                q = np.asarray(f[dataset])
         else:
-            q = np.asarray(np.load(Path(density_file), allow_pickle=False), dtype=np.float64)
+            q = np.asarray(np.load(Path(density_file), allow_pickle=False))
     except (OSError, KeyError, ValueError, TypeError) as exc:
         raise InitError(f"cannot read {density_file!r} ({type(exc).__name__}: {exc}); give a .npy file "
                         "or file.h5:/dataset") from None
+    if q.dtype.kind not in "iuf":  # datetimes, complex numbers, text, booleans would convert, meaning nothing
+        raise InitError(f"{density_file!r} holds values of type {q.dtype}: give real numbers (integers or floats)")
+    q = q.astype(np.float64)
     if q.shape != shape:
         raise InitError(f"{density_file!r} holds an array of shape {list(q.shape)}: give one of shape {list(shape)} "
                         "(the cells)")
