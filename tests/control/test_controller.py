@@ -1,5 +1,6 @@
 """The run controller: result shapes and units, stationary pooling, the HDF5 record, failures."""
 import json
+import math
 
 import h5py
 import numpy as np
@@ -8,6 +9,8 @@ import pytest
 import ti_dk
 from ti_dk import SimulationError, load_scene, run
 from ti_dk.core import theory
+
+from ..helpers import ROOT
 
 
 def test_result_and_file(tmp_path):
@@ -281,3 +284,72 @@ def test_large_seeds_run_and_differ(method):
         assert np.isfinite(res.final_density).all()
         finals.append(res.final_density)
     assert not np.array_equal(*finals)
+
+
+@pytest.mark.parametrize("method, C", [("fv", 1.5), ("gaussian", 3.0)])
+def test_a_run_that_blows_up_to_finite_values_stops_says_where_and_marks_its_file(tmp_path, method, C):
+    """It ended with exit 0 and -7.2e163 particles; now the first step past any particle count stops it."""
+    scene = load_scene("void1d", method=method, cells=[8], t_end=14, C=C, allow_unstable=True, ensemble=1)
+    with pytest.raises(SimulationError, match=r"^the density blew up: .* particles in a cell, beyond 100 times any "
+                       rf"count it can hold \(80\) at step (\d+) \(t = .*\): the scheme is unstable at C = {C}; "
+                       "lower C$") as err:
+        run(scene, out=tmp_path)
+    step = int(err.value.args[0].split(" at step ")[1].split()[0])
+    assert step < 50  # caught while finite, long before the values overflow (step 400 reached 1e115)
+    with h5py.File(tmp_path / f"void1d_{method}.h5") as f:
+        assert not f.attrs["complete"] and f.attrs["runaway"] == f.attrs["error"] == str(err.value)
+        assert f["diagnostics"].attrs["runaway_step"] == step == len(f["diagnostics/mass"])
+        assert f["diagnostics"].attrs["runaway_time"] == pytest.approx(step * scene.dt)
+        assert np.all(np.isfinite(f["diagnostics/mass"][:]))
+
+
+def test_a_run_asked_to_go_on_past_a_blow_up_says_it_once_and_marks_its_file(tmp_path, capsys):
+    scene = load_scene("void1d", cells=[8], t_end=0.5, C=1.5, allow_unstable=True, ensemble=2, runaway="continue")
+    res = run(scene, out=tmp_path)
+    err = capsys.readouterr().err
+    assert err.count("the density blew up") == 1 and "(runaway = continue: running on)" in err
+    with h5py.File(res.path) as f:
+        assert f.attrs["complete"] and "the density blew up" in f.attrs["runaway"]
+        assert 0 < f["diagnostics"].attrs["runaway_step"] < scene.n_steps == len(f["diagnostics/mass"])
+
+
+def test_the_mass_watch_sees_a_change_beyond_round_off_where_mass_is_conserved():
+    from ti_dk.control.controller import Runaway
+
+    scene = load_scene("void1d", cells=[8], ensemble=2)
+    d = {"mass": 160.0, "min_density": 0.0, "boundary_inflow": 0.0}
+    for method, said in (("fv", "the mass blew up: it changed by 0.001 particles"), ("hybrid", "")):
+        watch = Runaway(scene, scene.initial_ppc, method)
+        assert watch.check(d) == watch.check(d) == ""
+        assert watch.check(d | {"mass": 160.001}).startswith(said)
+    assert Runaway(scene, scene.initial_ppc, "fv").check(d | {"mass": math.nan}).startswith("the density became NaN")
+
+
+@pytest.mark.parametrize("bad", [None, {"init": "void"}, 3, ["void1d"]])
+def test_run_takes_a_scene_or_its_name_and_refuses_anything_else(bad, tmp_path):
+    with pytest.raises(TypeError, match=r"run takes a Scene \(from ti_dk.load_scene\) or a scene name or .toml path, "
+                       f"not {type(bad).__name__}"):
+        run(bad)
+    path = tmp_path / "tiny.toml"
+    path.write_text((ROOT / "scenes" / "void1d.toml").read_text().replace("ensemble = 20000", "ensemble = 2"))
+    res = run(str(path))
+    assert res.scene == load_scene(path) and res.scene.name == "tiny" and res.scene.method.ensemble == 2
+
+
+def test_every_way_to_a_scene_is_validated_before_it_runs(tmp_path):
+    import dataclasses
+
+    scene = load_scene("void1d", cells=[8], ensemble=2, t_end=0.001)
+    with pytest.raises(ti_dk.ConfigError, match=r"ensemble = 0: give a whole number in \[1, 4294967296\]"):
+        scene.replace(ensemble=0)
+    by_hand = dataclasses.replace(scene, method=dataclasses.replace(scene.method, ensemble=0))
+    with pytest.raises(ti_dk.ConfigError, match="ensemble = 0: give a whole number"):
+        run(by_hand)
+    for member0 in (-1, 2**32 - 1):  # the last member's index must fit 32 bits
+        with pytest.raises(ti_dk.ConfigError, match=rf"member0 = {member0}: give a whole number in \[0, 4294967294\]"):
+            run(scene, member0=member0)
+    np.save(tmp_path / "q.npy", np.full(8, 3.0))
+    from_file = scene.replace(init="array", density_file=str(tmp_path / "q.npy"))
+    np.save(tmp_path / "q.npy", np.full(8, -58.0))  # changed between load and run
+    with pytest.raises(ti_dk.ConfigError, match=r"density_file: the initial density is -58 in cell \[0\]"):
+        run(from_file)

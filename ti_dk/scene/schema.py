@@ -186,6 +186,9 @@ class TimeKeys:
     C: float = key("real", "time step dt = C min(dx)^2", 0.0625, lo=0.0, above=True)
     t_end: float = key("real", "end time", 0.01, lo=0.0, above=True)
     allow_unstable: bool = key("bool", "accept C beyond the explicit stability limit (experiments)", False)
+    runaway: str = key("choice", "a run that blows up (NaN, a density or mass change beyond any particle count): stop, "
+                       "or continue (said once and marked in the file; NaN still stops)", "stop",
+                       choices=("stop", "continue"))
 
 
 @dataclass(frozen=True)
