@@ -353,3 +353,17 @@ def test_every_way_to_a_scene_is_validated_before_it_runs(tmp_path):
     np.save(tmp_path / "q.npy", np.full(8, -58.0))  # changed between load and run
     with pytest.raises(ti_dk.ConfigError, match=r"density_file: the initial density is -58 in cell \[0\]"):
         run(from_file)
+
+
+@pytest.mark.parametrize("length", [8e-59, 8e59])  # cells of volume 1e-59 and 1e59, within the bounds
+def test_the_moments_stay_finite_at_the_bounds_of_the_cell_volume(length):
+    import warnings
+
+    dt = 0.0625 * (length / 8) ** 2
+    scene = load_scene("equilibrium1d", lengths=[length], cells=[8], ensemble=8, t_equil=None, histogram=None, C=0.0625,
+                       t_end=20 * dt, output_times=[])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)  # no NumPy overflow
+        res = run(scene)
+    assert np.all(np.isfinite(res.stats.kurtosis)) and np.all(res.stats.variance > 0)
+    assert res.stats.mean[-1] * scene.grid.cell_volume == pytest.approx(5.0, rel=0.5)

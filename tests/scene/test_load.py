@@ -228,3 +228,11 @@ def test_a_whole_number_beyond_float_is_refused_in_one_line_for_every_numeric_ke
         with pytest.raises(ConfigError) as err:
             load()
         assert name in str(err.value) and "\n" not in str(err.value) and len(str(err.value)) < 300
+
+
+@pytest.mark.parametrize("length", [1e-100, 1e100, 1e-61, 9e60])
+def test_lengths_whose_cells_break_the_fourth_moments_are_refused(length):
+    """lengths = [1e-100] or [1e100] gave a NaN kurtosis with a NumPy overflow warning."""
+    with pytest.raises(ConfigError, match=r"lengths = .*: a cell's volume .* lies outside \[1e-60, 1e\+60\], where the "
+                       "fourth moments of the density"):
+        load_scene("void1d", lengths=[length], cells=[8], t_end=1e-3 * length**2)

@@ -259,6 +259,7 @@ def _check_choices(scene: Scene) -> None:
                           f"use at most about {2 ** (32 - ID_BITS_MIN):.3g} cells")
 
 
+MIN_VOLUME = 1e-60  # cell volumes in [1e-60, 1e60]: densities up to 1e15 / 1e-60, raised to the 4th power, fit
 MAX_NESTING = 3  # lists in lists: [[lo, hi], ...] per side is the deepest any key takes
 
 
@@ -294,6 +295,10 @@ def _check_sizes(scene: Scene) -> None:
         raise ConfigError(f"lengths = {list(scene.grid.lengths)}, C = {scene.time.C}: the cell size or time step "
                           "under- or "
                           "overflows double precision; give lengths and C nearer 1")
+    if not MIN_VOLUME <= vol <= 1 / MIN_VOLUME:  # the density's fourth moments (kurtosis) in double precision
+        raise ConfigError(f"lengths = {list(scene.grid.lengths)}: a cell's volume {vol:.3g} lies outside "
+                          f"[{MIN_VOLUME:g}, {1 / MIN_VOLUME:g}], where the fourth moments of the density (particles "
+                          "per unit volume) under- or overflow double precision; give lengths nearer 1")
     steps = scene.time.t_end / scene.dt
     if steps < 0.5:
         raise ConfigError(f"t_end = {scene.time.t_end:g} is shorter than one time step dt = {scene.dt:.4g}: "
