@@ -1,4 +1,6 @@
 """What only the whole scene says (scene/checks.py): each case a one-line refusal, or taken."""
+import warnings
+
 import numpy as np
 import pytest
 
@@ -60,3 +62,30 @@ def test_a_density_beyond_any_particle_count_is_refused_naming_the_limit(density
 def test_a_boltzmann_density_piled_beyond_any_particle_count_is_refused():
     _refused("potential: the initial density is .* give finite densities in", "trap1d", ppc=1e15,
              potential="0.5*((x-0.5)/0.01)**2", cells=[64], C=0.01)
+
+
+@pytest.mark.parametrize("overrides, said", [
+    (dict(reservoir_ppc=5), r"reservoir_ppc on axis 0 does nothing on its lower side \(periodic, 5 given\) and upper "
+                            r"side \(periodic, 5 given\): only dirichlet sides have a reservoir"),
+    (dict(boundary=[["dirichlet", "neumann"]], reservoir_ppc=[[1, 2]]), r"upper side \(neumann, 2 given\):"),
+    (dict(ensemble=1, t_equil=0.009, sample_every=1000), "pools one step of one member: the row's variance, skewness"),
+    (dict(ensemble=1, structure_factor=True), "structure_factor = true with one member and no t_equil: every row is "
+                                              "one sample, so S.k. is not defined and none is drawn")])
+def test_keys_that_do_nothing_for_the_scene_are_said_to(overrides, said):
+    from ti_dk.scene.load import InputWarning
+
+    with pytest.warns(InputWarning, match=said) as caught:
+        load_scene("void1d", output_times=[], **overrides)
+    assert len(caught) == 1 and caught[0].filename == __file__  # said once, at the caller's line
+    taken = {"reservoir_ppc": dict(boundary="dirichlet"), "sample_every": dict(sample_every=100),
+             "structure_factor": dict(ensemble=2)}[next(k for k in ("reservoir_ppc", "sample_every",
+                                                                  "structure_factor") if k in overrides)]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        load_scene("void1d", output_times=[], **(overrides | taken))
+
+
+def test_t_end_below_one_step_is_refused_as_the_docs_say():
+    dt = load_scene("void1d").dt
+    _refused(r"t_end = 3.75e-06 is shorter than one time step dt = 6.25e-06: raise t_end", t_end=0.6 * dt)
+    assert load_scene("void1d", t_end=dt, output_times=[]).n_steps == 1

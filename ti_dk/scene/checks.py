@@ -133,3 +133,28 @@ def check_hybrid_sizes(scene: Scene) -> None:
     for name, value in (("buffer", h.buffer), ("min_box", h.min_box)):
         if value > most:
             raise ConfigError(f"{name} = {value:,}: give at most {most}, the most cells along an axis of this grid")
+
+
+def check_unused(scene: Scene) -> None:
+    """Keys that do nothing for this scene, said in an :class:`InputWarning` each: a reservoir on a
+    side that is not Dirichlet, and statistics from one sample (a stationary run pooling one step
+    of one member: no variance; S(k) of one member without ``t_equil``: nothing to draw)."""
+    def say(message: str) -> None:
+        warnings.warn(message, InputWarning, stacklevel=5)  # the caller of load_scene
+
+    g, st, E = scene.grid, scene.stats, scene.method.ensemble
+    for a, (kinds, levels) in enumerate(zip(g.boundary, g.reservoir_ppc)):
+        unused = [(side, kind, level) for side, kind, level in zip(("lower", "upper"), kinds, levels)
+                  if level and kind != "dirichlet"]
+        if unused:
+            say(f"reservoir_ppc on axis {a} does nothing on its "
+                + " and ".join(f"{side} side ({kind}, {level:g} given)" for side, kind, level in unused)
+                + ": only dirichlet sides have a reservoir")
+    if st.t_equil is not None and E == 1:
+        samples = (scene.n_steps - round(st.t_equil / scene.dt)) // st.sample_every + 1
+        if samples < 2:
+            say(f"t_equil = {st.t_equil:g} with sample_every = {st.sample_every} pools one step of one member: the "
+                "row's variance, skewness and kurtosis mean nothing; lower t_equil or sample_every, or raise ensemble")
+    if st.structure_factor and E == 1 and st.t_equil is None:
+        say("structure_factor = true with one member and no t_equil: every row is one sample, so S(k) is not "
+            "defined and none is drawn; raise ensemble or set t_equil")

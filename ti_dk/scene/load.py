@@ -21,7 +21,8 @@ import numpy as np
 from . import initial
 from .expr import ExprError, Potential, quoted
 from ..hybrid.ghosts import ID_BITS_MIN
-from .checks import COMPUTED, InputWarning, check_hybrid_sizes, check_initial, check_potential, check_time_step
+from .checks import (COMPUTED, InputWarning, check_hybrid_sizes, check_initial, check_potential, check_time_step,
+                     check_unused)
 from .estimates import check_memory
 from .schema import (BOUNDARY_KINDS, INIT_AXES, INIT_KEYS, KEYS, MAX_FIELD,
                      MAKE_SCENE, MAX_MEMBERS, MAX_STEPS, METHODS, NAME_RE, PPC_LIMITS, SCENE_DIR, SECTIONS, WHERE,
@@ -128,6 +129,7 @@ def make_scene(flat: dict[str, Any], initial_density: bool = True) -> Scene:
         _check_sizes(scene)
         check_hybrid_sizes(scene)
         check_potential(scene)
+        check_unused(scene)
         check_time_step(scene)
         check_memory(scene)
         if initial_density and scene.init.name in COMPUTED:
@@ -300,7 +302,7 @@ def _check_sizes(scene: Scene) -> None:
                           f"[{MIN_VOLUME:g}, {1 / MIN_VOLUME:g}], where the fourth moments of the density (particles "
                           "per unit volume) under- or overflow double precision; give lengths nearer 1")
     steps = scene.time.t_end / scene.dt
-    if steps < 0.5:
+    if steps < 1 - 1e-9:  # (round-off: t_end = dt is one step)
         raise ConfigError(f"t_end = {scene.time.t_end:g} is shorter than one time step dt = {scene.dt:.4g}: "
                           f"raise t_end (or C)")
     if steps > MAX_STEPS:
