@@ -80,7 +80,7 @@ def test_a_density_formula_is_taken_at_the_cell_centres():
     s = make_scene(dict(init="expression", density="3 + 2*sin(2*pi*x)", cells=[8]))
     x = (np.arange(8) + 0.5) / 8
     assert np.allclose(s.initial_ppc, 3 + 2 * np.sin(2 * np.pi * x), rtol=1e-15)
-    s = make_scene(dict(init="expression", density="x + 10*y", cells=[4, 2], lengths=[2.0, 1.0]))
+    s = make_scene(dict(init="expression", density="x + 10*y", cells=[4, 2], lengths=[2.0, 1.0], t_end=0.1))
     assert np.allclose(s.initial_ppc, np.add.outer((np.arange(4) + 0.5) / 2, 10 * (np.arange(2) + 0.5) / 2),
                        rtol=1e-15)
     for bad, msg in [("1 - 2*x", r"density: the initial density is -0.125 in cell \[4\]"),
