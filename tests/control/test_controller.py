@@ -345,6 +345,8 @@ def test_every_way_to_a_scene_is_validated_before_it_runs(tmp_path):
     by_hand = dataclasses.replace(scene, method=dataclasses.replace(scene.method, ensemble=0))
     with pytest.raises(ti_dk.ConfigError, match="ensemble = 0: give a whole number"):
         run(by_hand)
+    with pytest.raises(ti_dk.ConfigError, match="checkpoint_every needs an output folder"):  # it was dropped
+        run(scene, checkpoint_every=5)
     for member0 in (-1, 2**32 - 1):  # the last member's index must fit 32 bits
         with pytest.raises(ti_dk.ConfigError, match=rf"member0 = {member0}: give a whole number in \[0, 4294967294\]"):
             run(scene, member0=member0)

@@ -331,6 +331,8 @@ def check_options(scene: Scene, *, out: str | Path | None = None, executor: str 
 
     if movie and frames is False:
         raise ConfigError("--movie is made of frames: drop --no-frames or --movie")
+    if checkpoint_every and out is None:  # it would be dropped silently: a checkpoint is written into out
+        raise ConfigError("checkpoint_every needs an output folder to write the checkpoint into: give out")
     whole("--threads", threads, 1, 4096)
     whole("--checkpoint-every", checkpoint_every, 0, MAX_STEPS)
     whole("--workers", workers, 1, 4 * (os.cpu_count() or 1) if scheduler is None else 100_000)
