@@ -51,6 +51,9 @@ def test_boundaries_per_axis_and_side():
         ("void1d", {"t_end": -1.0}, "t_end = -1.0"),
         ("void1d", {"precision": "f16"}, "precision = 'f16'"),
         ("void1d", {"pool_layout": "sparse"}, "pool_layout = 'sparse': use one of flat, pointer"),
+        ("void1d", {"regrid_interval": 2**32}, "regrid_interval = 4294967296: give a whole number in [0, 4294967295]"),
+        ("void1d", {"sample_every": 2**32}, "sample_every = 4294967296: give a whole number in [1, 4294967295]"),
+        ("void1d", {"max_box": 2**31}, "max_box = 2147483648: give a whole number in [1, 2147483647]"),
     ],
 )
 def test_bad_input_says_what_to_change(name, overrides, message):
