@@ -52,7 +52,7 @@ def main() -> None:
         for method in ("fv", "gaussian", "particle", "hybrid"):
             members = args.members if case.startswith("1D") else max(1, args.members // 100)
             scene = ti_dk.load_scene("trap1d", method=method, ensemble=members, regrid_interval=0, **kw)
-            with_u, without = step_times([scene, scene.replace(potential="")], scene.initial_ppc, args.steps,
+            with_u, without = step_times([scene, scene.replace(potential="", init="uniform")], scene.initial_ppc, args.steps,
                                          args.repeats)
             print(f"| {case} | {method} | {members} | {1e3 * with_u:.3f} | {1e3 * without:.3f} | "
                   f"{with_u / without:.2f} |", flush=True)

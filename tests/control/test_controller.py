@@ -1,5 +1,6 @@
 """The run controller: result shapes and units, stationary pooling, the HDF5 record, failures."""
 import json
+import math
 
 import h5py
 import numpy as np
@@ -8,6 +9,8 @@ import pytest
 import ti_dk
 from ti_dk import SimulationError, load_scene, run
 from ti_dk.core import theory
+
+from ..helpers import ROOT
 
 
 def test_result_and_file(tmp_path):
@@ -203,7 +206,7 @@ def test_extreme_particle_regions_conserve(region):
 
 @pytest.mark.parametrize("method", ["fv", "gaussian", "particle", "hybrid"])
 def test_two_cells_per_axis(method):
-    res = run(load_scene("ellipse2d", method=method, cells=[2, 2], compare="none", t_end=0.01))
+    res = run(load_scene("ellipse2d", method=method, cells=[2, 2], compare="none", t_end=0.05))  # 3 steps
     assert np.all(np.isfinite(res.final_density))
     if method != "particle":
         assert np.allclose(res.diagnostics["mass"], res.diagnostics["mass"][0], rtol=1e-12)
@@ -283,11 +286,6 @@ def test_large_seeds_run_and_differ(method):
     assert not np.array_equal(*finals)
 
 
-def test_a_checkpoint_without_an_output_folder_is_refused():
-    with pytest.raises(ti_dk.ConfigError, match="checkpoint_every = 3: a checkpoint is written in the output folder"):
-        run(load_scene("void1d", cells=[8], t_end=0.001, output_times=[0.001]), checkpoint_every=3)
-
-
 def test_a_run_off_taichis_thread_or_beside_another_is_refused(monkeypatch):
     """Taichi runs on the thread that started it, one run at a time: anything else is a clear error,
     not a crashed process."""
@@ -320,3 +318,88 @@ def test_a_run_off_taichis_thread_or_beside_another_is_refused(monkeypatch):
     assert np.array_equal(run(scene).final_density, first.final_density)  # and the first goes on unharmed
     monkeypatch.undo()
     run(scene)  # the lock is released after each run
+
+
+@pytest.mark.parametrize("method, C", [("fv", 1.5), ("gaussian", 3.0)])
+def test_a_run_that_blows_up_to_finite_values_stops_says_where_and_marks_its_file(tmp_path, method, C):
+    """It ended with exit 0 and -7.2e163 particles; now the first step past any particle count stops it."""
+    scene = load_scene("void1d", method=method, cells=[8], t_end=14, C=C, allow_unstable=True, ensemble=1)
+    with pytest.raises(SimulationError, match=r"^the density blew up: .* particles in a cell, beyond 100 times any "
+                       rf"count it can hold \(80\) at step (\d+) \(t = .*\): the scheme is unstable at C = {C}; "
+                       "lower C$") as err:
+        run(scene, out=tmp_path)
+    step = int(err.value.args[0].split(" at step ")[1].split()[0])
+    assert step < 50  # caught while finite, long before the values overflow (step 400 reached 1e115)
+    with h5py.File(tmp_path / f"void1d_{method}.h5") as f:
+        assert not f.attrs["complete"] and f.attrs["runaway"] == f.attrs["error"] == str(err.value)
+        assert f["diagnostics"].attrs["runaway_step"] == step == len(f["diagnostics/mass"])
+        assert f["diagnostics"].attrs["runaway_time"] == pytest.approx(step * scene.dt)
+        assert np.all(np.isfinite(f["diagnostics/mass"][:]))
+
+
+def test_a_run_asked_to_go_on_past_a_blow_up_says_it_once_and_marks_its_file(tmp_path, capsys):
+    scene = load_scene("void1d", cells=[8], t_end=0.5, C=1.5, allow_unstable=True, ensemble=2, runaway="continue")
+    res = run(scene, out=tmp_path)
+    err = capsys.readouterr().err
+    assert err.count("the density blew up") == 1 and "(runaway = continue: running on)" in err
+    with h5py.File(res.path) as f:
+        assert f.attrs["complete"] and "the density blew up" in f.attrs["runaway"]
+        assert 0 < f["diagnostics"].attrs["runaway_step"] < scene.n_steps == len(f["diagnostics/mass"])
+
+
+def test_the_mass_watch_sees_a_change_beyond_round_off_where_mass_is_conserved():
+    from ti_dk.control.controller import Runaway
+
+    scene = load_scene("void1d", cells=[8], ensemble=2)
+    d = {"mass": 160.0, "min_density": 0.0, "boundary_inflow": 0.0}
+    for method, said in (("fv", "the mass blew up: it changed by 0.001 particles"), ("hybrid", "")):
+        watch = Runaway(scene, scene.initial_ppc, method)
+        assert watch.check(d) == watch.check(d) == ""
+        assert watch.check(d | {"mass": 160.001}).startswith(said)
+    assert Runaway(scene, scene.initial_ppc, "fv").check(d | {"mass": math.nan}).startswith("the density became NaN")
+
+
+@pytest.mark.parametrize("bad", [None, {"init": "void"}, 3, ["void1d"]])
+def test_run_takes_a_scene_or_its_name_and_refuses_anything_else(bad, tmp_path):
+    with pytest.raises(TypeError, match=r"run takes a Scene \(from ti_dk.load_scene\) or a scene name or .toml path, "
+                       f"not {type(bad).__name__}"):
+        run(bad)
+    path = tmp_path / "tiny.toml"
+    path.write_text((ROOT / "scenes" / "void1d.toml").read_text().replace("ensemble = 20000", "ensemble = 2"))
+    res = run(str(path))
+    assert res.scene == load_scene(path) and res.scene.name == "tiny" and res.scene.method.ensemble == 2
+
+
+def test_every_way_to_a_scene_is_validated_before_it_runs(tmp_path):
+    import dataclasses
+
+    scene = load_scene("void1d", cells=[8], ensemble=2, t_end=0.001)
+    with pytest.raises(ti_dk.ConfigError, match=r"ensemble = 0: give a whole number in \[1, 4294967296\]"):
+        scene.replace(ensemble=0)
+    by_hand = dataclasses.replace(scene, method=dataclasses.replace(scene.method, ensemble=0))
+    with pytest.raises(ti_dk.ConfigError, match="ensemble = 0: give a whole number"):
+        run(by_hand)
+    with pytest.raises(ti_dk.ConfigError, match="checkpoint_every needs an output folder"):  # it was dropped
+        run(scene, checkpoint_every=5)
+    for member0 in (-1, 2**32 - 1):  # the last member's index must fit 32 bits
+        with pytest.raises(ti_dk.ConfigError, match=rf"member0 = {member0}: give a whole number in \[0, 4294967294\]"):
+            run(scene, member0=member0)
+    np.save(tmp_path / "q.npy", np.full(8, 3.0))
+    from_file = scene.replace(init="array", density_file=str(tmp_path / "q.npy"))
+    np.save(tmp_path / "q.npy", np.full(8, -58.0))  # changed between load and run
+    with pytest.raises(ti_dk.ConfigError, match=r"density_file: the initial density is -58 in cell \[0\]"):
+        run(from_file)
+
+
+@pytest.mark.parametrize("length", [8e-59, 8e59])  # cells of volume 1e-59 and 1e59, within the bounds
+def test_the_moments_stay_finite_at_the_bounds_of_the_cell_volume(length):
+    import warnings
+
+    dt = 0.0625 * (length / 8) ** 2
+    scene = load_scene("equilibrium1d", lengths=[length], cells=[8], ensemble=8, t_equil=None, histogram=None, C=0.0625,
+                       t_end=20 * dt, output_times=[])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)  # no NumPy overflow
+        res = run(scene)
+    assert np.all(np.isfinite(res.stats.kurtosis)) and np.all(res.stats.variance > 0)
+    assert res.stats.mean[-1] * scene.grid.cell_volume == pytest.approx(5.0, rel=0.5)

@@ -9,7 +9,7 @@ from ti_dk.core.grid import DIRICHLET, INTERIOR, NEUMANN, PERIODIC, Grid, across
 
 def test_geometry_of_an_anisotropic_2d_grid():
     scene = load_scene("ellipse2d", cells=[4, 5], lengths=[2.0, 1.0], boundary=[["dirichlet", "neumann"], "periodic"],
-                       reservoir_ppc=[[6.0, 0.0], 0.0], method="fv", compare="none")
+                       reservoir_ppc=[[6.0, 0.0], 0.0], method="fv", compare="none", t_end=0.01)
     g = Grid.from_scene(scene)
     assert g.dim == 2 and g.dx == pytest.approx((0.5, 0.2))
     assert g.cell_volume == pytest.approx(0.1)

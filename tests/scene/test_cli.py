@@ -279,12 +279,12 @@ def test_quick_previews_every_scene_stably_under_its_own_name(tmp_path, name):
     """Every shipped scene's --quick scene loads (a stable C on the coarser grid, said in a line where
     it differs from the scene's) and writes none of the full run's paths."""
     from ti_dk.output.claim import Outputs
-    from ti_dk.scene import cli as cli_mod, load
+    from ti_dk.scene import checks, cli as cli_mod, load
 
     full = load.load_scene(name)
     quick, note = cli_mod.quick_scene(name, {}, full)
     assert quick.grid.cells == tuple(max(8, n // 4) for n in full.grid.cells)
-    limit = load.stability_limit(quick)
+    limit = checks.stability_limit(quick)
     assert quick.time.C < limit
     assert (quick.time.C == full.time.C) == (note == ""), note
     if note:  # the C it took and why, on one line

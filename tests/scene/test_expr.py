@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 import taichi as ti
 
+from ti_dk import ConfigError, load_scene
 from ti_dk.scene.expr import ExprError, Potential, derivative, numpy_value, parse, taichi_value
 
 FORMULAS = {  # text: the same function written in Python
@@ -95,3 +96,18 @@ def test_a_callable_potential():
     pot = Potential.of(lambda x, y: (x - 0.5) ** 2 + 0 * y, 2)
     assert pot.tree is None and pot.source.startswith("callable")
     assert pot(np.array([0.5, 1.0]), np.array([0.0])).tolist() == [0.0, 0.25]
+
+
+@pytest.mark.parametrize("text, what", [
+    (" + ".join(["x"] * 1000), "nested 1000 levels deep"), ("*".join(["x"] * 600), "nested 600 levels deep"),
+    ("-" * 3000 + "x", "nested"), ("x + " * 25_000 + "x", r"\(100,001 characters\) is too long"),
+    ("sin(" * 150 + "x" + ")" * 150, "nested 151 levels deep")])
+def test_a_formula_too_long_or_too_deep_is_refused_in_one_line(text, what):
+    """Each was a RecursionError: a formula is walked recursively, so its size and depth are bounded."""
+    for key in ("potential", "density"):
+        overrides = {key: text} if key == "potential" else {"init": "expression", "density": text}
+        with pytest.raises(ConfigError, match=f"{what}.*give a formula of at most 5,000 characters and 100 levels"
+                           if "levels" in what or "long" in what else what) as err:
+            load_scene("trap1d", init="uniform", **overrides) if key == "potential" else load_scene("void1d", **overrides)
+        assert "\n" not in str(err.value) and len(str(err.value)) < 300
+    assert parse(" + ".join(["x"] * 50))[0] == "add"  # within the bounds: a sum of 50 terms

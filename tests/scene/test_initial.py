@@ -80,7 +80,7 @@ def test_a_density_formula_is_taken_at_the_cell_centres():
     s = make_scene(dict(init="expression", density="3 + 2*sin(2*pi*x)", cells=[8]))
     x = (np.arange(8) + 0.5) / 8
     assert np.allclose(s.initial_ppc, 3 + 2 * np.sin(2 * np.pi * x), rtol=1e-15)
-    s = make_scene(dict(init="expression", density="x + 10*y", cells=[4, 2], lengths=[2.0, 1.0]))
+    s = make_scene(dict(init="expression", density="x + 10*y", cells=[4, 2], lengths=[2.0, 1.0], t_end=0.1))
     assert np.allclose(s.initial_ppc, np.add.outer((np.arange(4) + 0.5) / 2, 10 * (np.arange(2) + 0.5) / 2),
                        rtol=1e-15)
     for bad, msg in [("1 - 2*x", r"density: the initial density is -0.125 in cell \[4\]"),
@@ -122,3 +122,29 @@ def test_a_shape_for_another_dimension_says_which_fit():
     with pytest.raises(ConfigError, match="'ellipses' is 2D, give 2 cell counts .in 1D use one of uniform, void, "
                                           "expression, array, boltzmann."):
         load_scene("ellipse2d", cells=[16])
+
+
+@pytest.mark.parametrize("values", [np.array(["2024-01-01"] * 8, dtype="datetime64[D]"), np.full(8, 2 + 1j),
+                                    np.full(8, True), np.array(["3"] * 8)], ids=["datetime", "complex", "bool", "text"])
+def test_a_density_file_of_anything_but_real_numbers_is_refused(values, tmp_path):
+    import h5py
+
+    np.save(tmp_path / "q.npy", values)
+    paths = [tmp_path / "q.npy"]
+    if values.dtype.kind != "M":  # HDF5 has no datetime type
+        with h5py.File(tmp_path / "q.h5", "w") as f:
+            f["q"] = values.astype("S") if values.dtype.kind == "U" else values
+        paths.append(f"{tmp_path / 'q.h5'}:/q")
+    for path in paths:
+        with pytest.raises(ConfigError, match=r"density_file: .* holds values of type .*: give real numbers"):
+            make_scene(dict(init="array", density_file=str(path), cells=[8]))
+    np.save(tmp_path / "q.npy", np.arange(8, dtype=np.uint16))  # whole numbers are real numbers
+    assert make_scene(dict(init="array", density_file=str(tmp_path / "q.npy"), cells=[8])).initial_ppc[7] == 7.0
+
+
+@pytest.mark.parametrize("key", ["outer_r", "inner_r"])
+def test_a_radius_beyond_any_box_is_refused_not_an_overflow(key):
+    with pytest.raises(ConfigError, match=rf"{key} = 1e\+308: give a number in \[0, 1e\+06\]"):
+        load_scene("ellipse2d", **{key: 1e308})
+    scene = load_scene("ellipse2d", **{key: 1e6})
+    assert scene.initial_ppc.shape == scene.grid.cells

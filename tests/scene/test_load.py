@@ -57,6 +57,9 @@ def test_boundaries_per_axis_and_side():
         ("void1d", {"t_end": -1.0}, "t_end = -1.0"),
         ("void1d", {"precision": "f16"}, "precision = 'f16'"),
         ("void1d", {"pool_layout": "sparse"}, "pool_layout = 'sparse': use one of flat, pointer"),
+        ("void1d", {"regrid_interval": 2**32}, "regrid_interval = 4294967296: give a whole number in [0, 4294967295]"),
+        ("void1d", {"sample_every": 2**32}, "sample_every = 4294967296: give a whole number in [1, 4294967295]"),
+        ("void1d", {"max_box": 2**31}, "max_box = 2147483648: give a whole number in [1, 2147483647]"),
     ],
 )
 def test_bad_input_says_what_to_change(name, overrides, message):
@@ -220,3 +223,44 @@ def test_a_fifo_given_as_an_input_file_is_refused_at_once(tmp_path, what):
         else:
             load_scene("void1d", init="array", density_file=f"{fifo}:/q" if what == "h5" else str(fifo))
     assert str(fifo) in str(err.value) and "\n" not in str(err.value)
+
+
+HUGE = 10**400  # a whole number beyond the largest float
+NUMERIC_INIT_SCENES = {"void1d": ("ppc", "void_lo", "void_hi"),
+                       "ellipse2d": ("ppc_outer", "ppc_inner", "outer_r", "inner_r"),
+                       "sphere3d": ("inner_x", "inner_y", "inner_z")}
+LIST_KEYS = {"cells": lambda v: [v], "lengths": lambda v: [v], "reservoir_ppc": lambda v: [[v, 0]],
+             "output_times": lambda v: [0.001, v], "histogram": lambda v: [0, v], "t_equil": lambda v: v}
+
+
+def _numeric_keys():
+    from ti_dk.scene.schema import KEYS
+    init_keys = {k: scene for scene, ks in NUMERIC_INIT_SCENES.items() for k in ks}
+    for name, k in KEYS.items():
+        if k.kind in ("real", "int"):
+            yield init_keys.get(name, "void1d"), name, (lambda v: v)
+    yield from (("void1d", name, wrap) for name, wrap in LIST_KEYS.items())
+
+
+@pytest.mark.parametrize("scene, name, wrap", list(_numeric_keys()), ids=lambda v: v if isinstance(v, str) else "")
+@pytest.mark.parametrize("sign", [1, -1])
+def test_a_whole_number_beyond_float_is_refused_in_one_line_for_every_numeric_key(scene, name, wrap, sign, tmp_path):
+    """Every numeric key, scalar or list entry, by override, --set and scene file: a ConfigError naming the key."""
+    value = wrap(sign * HUGE)
+    path = tmp_path / "huge.toml"  # the key at the top of a copy of the scene file, its own line there dropped
+    text = (ROOT / "scenes" / f"{scene}.toml").read_text().replace(f"\n{name} =", f"\n# {name} =")
+    path.write_text(f"{name} = {value}\n{text}")
+    for load in (lambda: load_scene(scene, **{name: value}),
+                 lambda: load_scene(scene, **{name: parse_value(str(value), name)}),
+                 lambda: load_scene(path)):
+        with pytest.raises(ConfigError) as err:
+            load()
+        assert name in str(err.value) and "\n" not in str(err.value) and len(str(err.value)) < 300
+
+
+@pytest.mark.parametrize("length", [1e-100, 1e100, 1e-61, 9e60])
+def test_lengths_whose_cells_break_the_fourth_moments_are_refused(length):
+    """lengths = [1e-100] or [1e100] gave a NaN kurtosis with a NumPy overflow warning."""
+    with pytest.raises(ConfigError, match=r"lengths = .*: a cell's volume .* lies outside \[1e-60, 1e\+60\], where the "
+                       "fourth moments of the density"):
+        load_scene("void1d", lengths=[length], cells=[8], t_end=1e-3 * length**2)

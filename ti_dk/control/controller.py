@@ -14,8 +14,9 @@ from tqdm import tqdm
 
 from .checkpoint import Progress, read_checkpoint
 from ..scene.estimates import work_estimate
-from ..scene.load import check_options
-from ..scene.schema import ConfigError, Scene
+from ..scene.checks import check_initial
+from ..scene.load import check_options, scene_of
+from ..scene.schema import Scene
 from .handlers import Checkpoints, Clock, Diagnostics, Frames, Snapshots, Statistics
 from ..output.claim import Outputs
 from ..output.files import RunFile, is_complete, output_error
@@ -42,11 +43,12 @@ class RunOptions:
     member0: int = 0  # the global index of the first member (a chunk of a larger ensemble)
 
 
-def run(scene: Scene, out: str | Path | None = None, progress: bool | None = None,
+def run(scene: Scene | str | Path, out: str | Path | None = None, progress: bool | None = None,
         arch: str = "cpu", threads: int | None = None, *, frames: bool | None = None, movie: bool = False,
         snapshots: bool | None = None, checkpoint_every: int = 0, restart: str | Path | None = None,
         member0: int = 0, overwrite: bool = False) -> Result:
-    """Run a scene; return its statistics and, with ``out``, write its files there.
+    """Run a scene (a :class:`Scene`, validated again here, or a scene name or path); return its
+    statistics and, with ``out``, write its files there.
 
     Rows are taken at ``scene.output_steps`` over the ensemble; a stationary scene (``t_equil``
     set) pools every ``sample_every``-th step after ``t_equil`` into one row. With ``out``:
@@ -66,8 +68,9 @@ def run(scene: Scene, out: str | Path | None = None, progress: bool | None = Non
     leave the file marked incomplete. Taichi runs on the thread that started it, one run at a time:
     a run from another thread, or while another goes, raises :class:`ti_dk.SimulationError`.
     """
+    scene = scene_of(scene)
     check_options(scene, out=out, threads=threads, checkpoint_every=checkpoint_every, restart=restart, movie=movie,
-                  frames=frames)
+                  frames=frames, member0=member0)
     opts = RunOptions(progress, arch, threads, frames, movie, snapshots, checkpoint_every,
                       Path(restart) if restart is not None else None, member0)
     if not started_here():
@@ -78,9 +81,6 @@ def run(scene: Scene, out: str | Path | None = None, progress: bool | None = Non
                               "for it to return, or run scenes in separate processes")
     try:
         if out is None:
-            if checkpoint_every:  # nowhere to write it
-                raise ConfigError(f"checkpoint_every = {checkpoint_every}: a checkpoint is written in the output "
-                                  "folder; give out or drop checkpoint_every")
             return _run(scene, None, opts)
         outputs = Outputs.of(out, scene)
         check_stop()
@@ -102,10 +102,11 @@ def _run(scene: Scene, outputs: Outputs | None, opts: RunOptions) -> Result:
         init(opts.arch, opts.threads)
     check_stop()
     wall0 = time.perf_counter()
-    solver, other = _solvers(scene, opts.member0)
+    ppc = check_initial(scene)  # a density file may have changed since the scene was loaded
+    solver, other = _solvers(scene, ppc, opts.member0)
     prog = read_checkpoint(opts.restart, scene, solver, other) if opts.restart is not None else Progress()
     check_stop()
-    ctl = Controller(scene, solver, other, outputs, prog, opts, wall0)
+    ctl = Controller(scene, solver, other, outputs, prog, opts, wall0, ppc)
     ctl.clock.add("setup", wall0)  # solvers built and initialised (their kernels compiled), checkpoint read
     show = sys.stderr.isatty() if opts.progress is None else opts.progress
     try:
@@ -132,9 +133,9 @@ def _run(scene: Scene, outputs: Outputs | None, opts: RunOptions) -> Result:
     return ctl.finish(ctl.wall())
 
 
-def _solvers(scene: Scene, member0: int) -> tuple[Solver, Solver | None]:
-    """The scene's solver and that of the method run alongside (``scene.method.compare``), if any."""
-    ppc = scene.initial_ppc
+def _solvers(scene: Scene, ppc: np.ndarray, member0: int) -> tuple[Solver, Solver | None]:
+    """The scene's solver and that of the method run alongside (``scene.method.compare``), if any,
+    from the initial density ``ppc``."""
     try:
         solver = make_solver(scene, ppc, member0)
         other = make_solver(scene.replace(method=scene.method.compare), ppc, member0) if scene.method.compare else None
@@ -148,7 +149,7 @@ class Controller:
     output handlers, asked in order after every step whether they are due."""
 
     def __init__(self, scene: Scene, solver: Solver, other: Solver | None, outputs: Outputs | None,
-                 prog: Progress, opts: RunOptions, wall0: float):
+                 prog: Progress, opts: RunOptions, wall0: float, ppc: np.ndarray):
         self.scene, self.solver, self.other = scene, solver, other
         self.outputs = outputs  # every path the run writes, or None
         self.wall0 = wall0 - prog.wall  # when the run began (perf_counter), a restarted one's earlier part included
@@ -169,6 +170,8 @@ class Controller:
         self.checkpoints = Checkpoints(scene, (solver, other), outputs.checkpoint if outputs and every else None,
                                        every, self.progress, self.diagnostics, opts.restart)
         self.handlers = (self.statistics, self.frames, self.snapshots, self.diagnostics, self.checkpoints)
+        self.watch = (Runaway(scene, ppc, scene.method.name), Runaway(scene, ppc, scene.method.compare))
+        self.blown = False  # whether a step blew up (and the run went on)
         self.written = self._written()  # every file or folder written, by what it holds
         # the file a stopped run leaves marked incomplete: not when it replaces a complete result, which stays
         self.stopped_file = self.rf.path if self.rf and not is_complete(self.rf.path) else None
@@ -192,15 +195,31 @@ class Controller:
         self.solver.step(n)
         t0 = self.clock.add("solver", t0)
         d = self.solver.diagnostics()
+        blown = self.watch[0].check(d)
         if self.other:
             self.other.step(n)
             self.clock.add("compare", t0)
-            d |= {f"compare_{k}": v for k, v in self.other.diagnostics().items() if k in COMPARED}
-        if not math.isfinite(d["mass"]):
-            raise SimulationError(
-                f"the density became NaN or infinite at step {n + 1} (t = {(n + 1) * self.scene.dt:.4g}): "
-                f"the scheme is unstable at C = {self.scene.time.C}; lower C")
+            od = self.other.diagnostics()
+            blown = blown or self.watch[1].check(od, f" in {self.scene.method.compare} (run alongside)")
+            d |= {f"compare_{k}": v for k, v in od.items() if k in COMPARED}
         self.diagnostics.append((n + 1) * self.scene.dt, d)
+        if blown and (not self.blown or "NaN" in blown):  # said once; NaN always stops
+            self.blew_up(n + 1, blown)
+
+    def blew_up(self, step: int, what: str) -> None:
+        """The first step that blew up: said in one line and marked in the run file (root attribute
+        ``runaway``; ``/diagnostics`` attributes ``runaway_step`` and ``runaway_time``); the run
+        stops (:class:`SimulationError`) unless ``runaway = "continue"`` and the values are finite."""
+        t, sc = step * self.scene.dt, self.scene
+        message = f"{what} at step {step} (t = {t:.4g}): the scheme is unstable at C = {sc.time.C}; lower C"
+        if self.rf:
+            self.diagnostics.flush(force=True)
+            self.rf.annotate("runaway", message)
+            self.rf.diag.attrs.update(runaway_step=step, runaway_time=t)
+        if sc.time.runaway == "stop" or "NaN" in what:
+            raise SimulationError(message)
+        print(f"ti_dk: warning: {message} (runaway = continue: running on)", file=sys.stderr)
+        self.blown = True
 
     def record(self, n: int) -> None:
         """After step ``n``: every handler that is due writes, its time counted to its part."""
@@ -253,6 +272,42 @@ class Controller:
                       final_density=self.solver.density(), wall_time=wall, path=self.rf.path if self.rf else None,
                       regrids=regrids, timing=timing, rows=st.rows, written=self.written,
                       frames=[self.outputs.frames / p.name for p in self.frames.files()])
+
+
+class Runaway:
+    """Whether a step blew up, from one solver's diagnostics after it (sums over the members):
+    a NaN or infinite mass; a cell holding (in magnitude) more than :attr:`GROWTH` times any
+    particle count the scene can hold, the whole initial content of a member or its reservoirs
+    filling every cell; or, where the mass is conserved (not in the hybrid, whose regrids turn
+    fractional SPDE content into whole particles), its changing by more than :attr:`CONSERVED` of
+    itself beyond what the boundaries let in (measured below 1e-8 in f32 and f64)."""
+
+    GROWTH, CONSERVED = 100.0, 1e-6
+
+    def __init__(self, scene: Scene, ppc: np.ndarray, method: str | None):
+        g, E = scene.grid, scene.method.ensemble
+        reservoirs = max((r for sides in g.reservoir_ppc for r in sides), default=0.0) * math.prod(g.cells)
+        self.most = max(float(np.sum(ppc)), reservoirs, 1.0)  # particles a member can hold
+        self.vol, self.members, self.mass = g.cell_volume, E, None  # mass: after the step before
+        self.conserved = method != "hybrid"
+
+    def check(self, d: dict, where: str = "") -> str:
+        """What blew up in this step (``""``: nothing)."""
+        mass, before = d["mass"], self.mass
+        if not math.isfinite(mass):
+            return f"the density became NaN or infinite{where}"
+        self.mass = mass
+        cell = -d["min_density"] * self.vol if math.isfinite(d["min_density"]) else 0.0  # particles
+        big, what = max((cell, "a cell"), (abs(mass) / self.members, "a member"))
+        if big > self.GROWTH * self.most:
+            return (f"the density blew up{where}: {big:.3g} particles in {what}, beyond {self.GROWTH:g} times any "
+                    f"count it can hold ({self.most:.4g})")
+        if before is not None and self.conserved:
+            lost = mass - before - d["boundary_inflow"]
+            if abs(lost) > self.CONSERVED * max(abs(before), abs(mass), self.members):
+                return (f"the mass blew up{where}: it changed by {lost:.3g} particles in one step beyond the "
+                        f"boundary inflow, where it is conserved to round-off")
+        return ""
 
 
 OVERDUE_SECONDS, OVERDUE_FACTOR = 60.0, 3.0  # a run past both says how far it is

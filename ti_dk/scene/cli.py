@@ -12,7 +12,7 @@ import os
 import sys
 import warnings
 
-from . import estimates, load, schema
+from . import checks, estimates, load, schema
 from ..control import controller, ensemble, runtime, signals
 from ..output.files import OutputError
 
@@ -133,7 +133,7 @@ def quick_scene(scene_arg: str, overrides: dict, scene: schema.Scene) -> tuple[s
     which C it took and why ("" where it kept the scene's)."""
     cells = [max(8, n // 4) for n in scene.grid.cells]
     quick = dict(overrides, cells=cells, name=f"{scene.name}_quick")
-    limit = load.stability_limit(scene.replace(cells=tuple(cells)))
+    limit = checks.stability_limit(scene.replace(cells=tuple(cells)))
     note = ""
     if scene.time.C >= limit and not scene.time.allow_unstable and scene.method.name != "particle":
         quick["C"] = float(f"{limit / 2:.2g}")

@@ -21,6 +21,7 @@ VARIABLES = ("x", "y", "z")  # axis 0, 1, 2
 CONSTANTS = {"pi": math.pi, "e": math.e}
 FUNCS = ("sin", "cos", "tan", "exp", "log", "sqrt", "abs", "tanh", "atan", "step")  # step(u): 1 where u >= 0, else 0
 _BINARY = {ast.Add: "add", ast.Sub: "sub", ast.Mult: "mul", ast.Div: "div", ast.Pow: "pow"}
+MAX_CHARS, MAX_DEPTH = 5_000, 100  # a formula's length and nesting (its tree is walked recursively)
 QUADRATURE = {1: 16, 2: 8, 3: 4}  # Gauss–Legendre points per axis for cell averages, by dimension
 
 
@@ -64,11 +65,28 @@ def parse(text: str) -> tuple:
     """The tree of formula ``text``; :class:`ExprError` naming what is not allowed."""
     if not isinstance(text, str) or not text.strip():
         raise ExprError("give a formula in x, y, z as text")
+    too_big = f"give a formula of at most {MAX_CHARS:,} characters and {MAX_DEPTH} levels of nesting"
+    if len(text) > MAX_CHARS:
+        raise ExprError(f"{quoted(text)} is too long: {too_big}")
     try:
         body = ast.parse(text.strip(), mode="eval").body
     except SyntaxError:
-        raise ExprError(f"{text!r} is not a formula: check its brackets and operators") from None
+        raise ExprError(f"{quoted(text)} is not a formula: check its brackets and operators") from None
+    except (RecursionError, MemoryError):  # the parser's own limit on nesting
+        raise ExprError(f"{quoted(text)} is nested too deep: {too_big}") from None
+    depth, level = 0, [(body, 1)]
+    while level:  # its depth, without recursion (the term a + b + … + z is as deep as it is long)
+        depth = max(depth, max(d for _, d in level))
+        level = [(c, d + 1) for n, d in level for c in ast.iter_child_nodes(n) if not isinstance(c, ast.expr_context)]
+    if depth > MAX_DEPTH:
+        raise ExprError(f"{quoted(text)} is nested {depth} levels deep (a sum or product of n terms is n deep): "
+                        f"{too_big}")
     return _node(body)
+
+
+def quoted(text: str) -> str:
+    """A formula as a message quotes it: its start, if long."""
+    return repr(text) if len(text) <= 60 else f"{text[:40]!r}… ({len(text):,} characters)"
 
 
 def _node(n: ast.AST) -> tuple:
@@ -99,6 +117,12 @@ def axes_used(t: tuple) -> set[int]:
     if t[0] == "var":
         return {t[1]}
     return set().union(*(axes_used(c) for c in t[1:] if isinstance(c, tuple)))
+
+
+def functions_used(t: tuple) -> set[str]:
+    """The functions (``sin``, ``step``, …) a tree calls."""
+    own = {t[1]} if t[0] == "call" else set()
+    return own.union(*(functions_used(c) for c in t[1:] if isinstance(c, tuple)))
 
 
 def derivative(t: tuple, a: int) -> tuple:

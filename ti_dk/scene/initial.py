@@ -95,13 +95,16 @@ def array(x, density_file: str = ""):
             import h5py
 
             with open_regular(path + ".h5") as fh, h5py.File(fh, "r") as f:
-                q = np.asarray(f[dataset], dtype=np.float64)
+                q = np.asarray(f[dataset])
         else:
             with open_regular(density_file) as fh:
-                q = np.asarray(np.load(fh, allow_pickle=False), dtype=np.float64)
+                q = np.asarray(np.load(fh, allow_pickle=False))
     except (OSError, KeyError, ValueError, TypeError) as exc:
         why = exc.strerror if isinstance(exc, OSError) and exc.strerror else f"{type(exc).__name__}: {exc}"
         raise InitError(f"cannot read {density_file!r} ({why}); give a .npy file or file.h5:/dataset") from None
+    if q.dtype.kind not in "iuf":  # datetimes, complex numbers, text, booleans would convert, meaning nothing
+        raise InitError(f"{density_file!r} holds values of type {q.dtype}: give real numbers (integers or floats)")
+    q = q.astype(np.float64)
     if q.shape != shape:
         raise InitError(f"{density_file!r} holds an array of shape {list(q.shape)}: give one of shape {list(shape)} "
                         "(the cells)")

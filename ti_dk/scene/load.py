@@ -19,22 +19,18 @@ else:  # pragma: no cover - exercised on Python 3.10 only
 import numpy as np
 
 from . import initial
-from .expr import ExprError, Potential, numpy_value
-from ..core.grid import Grid
-from ..hybrid.ghosts import HYBRID_STEP_LIMIT, ID_BITS_MIN
-from ..methods.fluxes import drift_coefficients, stability_number
+from .expr import ExprError, Potential, quoted
+from ..hybrid.ghosts import ID_BITS_MIN
+from .checks import (COMPUTED, InputWarning, check_hybrid_sizes, check_initial, check_potential, check_time_step,
+                     check_unused)
 from .estimates import check_memory
-from .schema import (BOUNDARY_KINDS, CLAMP_WARN, INIT_AXES, INIT_KEYS, KEYS, MAX_FIELD,
-                     MAX_MEMBERS, MAX_STEPS, METHODS, NAME_RE, PPC_LIMITS, SCENE_DIR, SECTIONS, WHERE, ClampWarning,
+from .schema import (BOUNDARY_KINDS, INIT_AXES, INIT_KEYS, KEYS, MAX_FIELD,
+                     MAKE_SCENE, MAX_MEMBERS, MAX_STEPS, METHODS, NAME_RE, PPC_LIMITS, SCENE_DIR, SECTIONS, WHERE,
                      ConfigError, GridKeys, InitKeys, Key, MethodKeys, Scene, TimeKeys, did_you_mean)
 
 # ---------------------------------------------------------------------------------------
 # loading
 # ---------------------------------------------------------------------------------------
-class InputWarning(UserWarning):
-    """Input that is taken, but not all of it (output times past t_end)."""
-
-
 def available_scenes() -> list[str]:
     return sorted(p.stem for p in SCENE_DIR.glob("*.toml"))
 
@@ -108,9 +104,10 @@ def load_scene(name_or_path: str | Path, **overrides: Any) -> Scene:
     return make_scene(flat)
 
 
-def make_scene(flat: dict[str, Any]) -> Scene:
+def make_scene(flat: dict[str, Any], initial_density: bool = True) -> Scene:
     """Validate a flat dict of scene keys (section keys by flat name plus the initial condition's
-    parameters) into a :class:`Scene`."""
+    parameters) into a :class:`Scene`; ``initial_density=False`` leaves the initial density to the
+    caller (:func:`ti_dk.run` checks the one it runs from, by :func:`.checks.check_initial`)."""
     flat = {k: _plain(k, v) for k, v in flat.items()}
     init = _init_keys(flat)
     grid = _grid_keys(flat, init.name)
@@ -131,13 +128,35 @@ def make_scene(flat: dict[str, Any]) -> Scene:
     try:
         _check_choices(scene)
         _check_sizes(scene)
-        _check_initial(scene)
-        _check_time_step(scene)
+        check_hybrid_sizes(scene)
+        check_potential(scene)
+        check_unused(scene)
+        check_time_step(scene)
         check_memory(scene)
+        if initial_density and scene.init.name in COMPUTED:
+            check_initial(scene)
     except OverflowError:  # a length or time step near the float limits, squared
         raise ConfigError(f"lengths = {list(grid.lengths)}, C = {scene.time.C}: the cell size or time step under- or "
                           "overflows double precision; give lengths and C nearer 1") from None
     return scene
+
+
+MAKE_SCENE.append(make_scene)  # Scene.replace validates by it
+
+
+def scene_of(scene: Any) -> Scene:
+    """What :func:`ti_dk.run` runs: a :class:`Scene` validated again as :func:`make_scene` validates
+    (one made by hand or by ``dataclasses.replace`` too; its warnings were said when it was made),
+    or a scene name or ``.toml`` path, loaded. The initial density is left to the run, which
+    checks the one it runs from. Anything else: ``TypeError``."""
+    if isinstance(scene, (str, os.PathLike)):
+        return load_scene(scene)
+    if not isinstance(scene, Scene):
+        raise TypeError(f"run takes a Scene (from ti_dk.load_scene) or a scene name or .toml path, "
+                        f"not {type(scene).__name__}")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        return make_scene(scene.flat(), initial_density=False)
 
 
 def _init_keys(flat: dict[str, Any]) -> InitKeys:
@@ -200,7 +219,7 @@ def _grid_keys(flat: dict[str, Any], ic_name: str) -> GridKeys:
     try:
         Potential.of(potential, dim)
     except ExprError as exc:
-        raise ConfigError(f"potential = {potential!r}: {exc}") from None
+        raise ConfigError(f"potential = {quoted(potential)}: {exc}") from None
     return GridKeys(cells, lengths, boundary, reservoir, potential)
 
 
@@ -243,6 +262,7 @@ def _check_choices(scene: Scene) -> None:
                           f"use at most about {2 ** (32 - ID_BITS_MIN):.3g} cells")
 
 
+MIN_VOLUME = 1e-60  # cell volumes in [1e-60, 1e60]: densities up to 1e15 / 1e-60, raised to the 4th power, fit
 MAX_NESTING = 3  # lists in lists: [[lo, hi], ...] per side is the deepest any key takes
 
 
@@ -278,8 +298,12 @@ def _check_sizes(scene: Scene) -> None:
         raise ConfigError(f"lengths = {list(scene.grid.lengths)}, C = {scene.time.C}: the cell size or time step "
                           "under- or "
                           "overflows double precision; give lengths and C nearer 1")
+    if not MIN_VOLUME <= vol <= 1 / MIN_VOLUME:  # the density's fourth moments (kurtosis) in double precision
+        raise ConfigError(f"lengths = {list(scene.grid.lengths)}: a cell's volume {vol:.3g} lies outside "
+                          f"[{MIN_VOLUME:g}, {1 / MIN_VOLUME:g}], where the fourth moments of the density (particles "
+                          "per unit volume) under- or overflow double precision; give lengths nearer 1")
     steps = scene.time.t_end / scene.dt
-    if steps < 0.5:
+    if steps < 1 - 1e-9:  # (round-off: t_end = dt is one step)
         raise ConfigError(f"t_end = {scene.time.t_end:g} is shorter than one time step dt = {scene.dt:.4g}: "
                           f"raise t_end (or C)")
     if steps > MAX_STEPS:
@@ -292,78 +316,13 @@ def _check_sizes(scene: Scene) -> None:
         raise ConfigError(f"void_lo = {p['void_lo']}, void_hi = {p['void_hi']}: give void_lo <= void_hi")
 
 
-def _check_initial(scene: Scene) -> None:
-    """A density from a formula, a file or the potential (the others are so by construction): finite, >= 0."""
-    key_ = {"expression": "density", "array": "density_file", "boltzmann": "potential"}.get(scene.init.name)
-    if key_ is None:
-        return
-    try:
-        ppc = scene.initial_ppc
-    except Exception as exc:  # ours say what to change; a callable potential's own error what failed
-        known = isinstance(exc, (ExprError, initial.InitError))
-        raise ConfigError(f"{key_}: " + (str(exc) if known else f"evaluating it failed ({type(exc).__name__}: {exc})")) from None
-    if not np.all(np.isfinite(ppc)) or np.any(ppc < 0):
-        bad = np.argwhere(~(np.isfinite(ppc) & (ppc >= 0)))[0].tolist()
-        raise ConfigError(f"{key_}: the initial density is {ppc[tuple(bad)]} in cell {bad}: "
-                          "give finite densities >= 0 in every cell")
-
-
-def _drift(scene: Scene) -> tuple[float, float]:
-    """With a potential: the FV scheme's stability number (:func:`fluxes.stability_number`) and
-    the largest chance that a particle step along an axis is clamped, its drift −½∂_aU Δt
-    evaluated at the cell centres; a potential that is not finite where the run reads it is refused."""
-    grid, pot = Grid.from_scene(scene), scene.potential
-    try:
-        coef = drift_coefficients(grid)
-        centres = np.meshgrid(*((np.arange(n) + 0.5) * h for n, h in zip(grid.cells, grid.dx)), indexing="ij")
-        u = pot(*centres)
-        grads = [np.asarray(np.gradient(u, h, axis=a)) for a, h in enumerate(grid.dx)] if pot.tree is None else \
-            [np.broadcast_to(numpy_value(t, tuple(centres)), u.shape) for t in pot.gradient_trees()]
-    except Exception as exc:
-        raise ConfigError(f"potential = {pot.source!r}: evaluating it failed ({type(exc).__name__}: {exc})") from None
-    if not (np.all(np.isfinite(coef)) and np.all(np.isfinite(u)) and all(np.all(np.isfinite(g)) for g in grads)):
-        raise ConfigError(f"potential = {pot.source!r} is not finite everywhere on the grid (or in a reservoir "
-                          "cell): give a potential finite on the closed domain")
-    dt = scene.dt / (scene.hybrid.particle_substeps if scene.method.name == "hybrid" else 1)  # a particle step
-    sd, clamp = math.sqrt(dt), 0.0
-    for g, h in zip(grads, grid.dx):
-        mu = 0.5 * float(np.max(np.abs(g))) * dt
-        clamp = max(clamp, 0.5 * (math.erfc((h - mu) / (sd * math.sqrt(2))) + math.erfc((h + mu) / (sd * math.sqrt(2)))))
-    return stability_number(grid, scene.dt, coef), clamp
-
-
-def stability_limit(scene: Scene) -> float:
-    """The explicit FV scheme's limit on C on the scene's grid, with its potential: stable below it."""
-    return scene.time.C / (scene.stability_number if scene.potential is None else _drift(scene)[0])
-
-
-def _check_time_step(scene: Scene) -> None:
-    number, clamp = (scene.stability_number, scene.clamp_probability) if scene.potential is None else _drift(scene)
-    limit = scene.time.C / number
-    if number >= 1 and not scene.time.allow_unstable and scene.method.name != "particle":
-        raise ConfigError(
-            f"C = {scene.time.C} is beyond the explicit stability limit C < {limit:.4g} of the FV scheme on this grid"
-            f"{' with this potential' if scene.potential else ''}: "
-            f"lower C (e.g. --set C={limit / 2:.4g}) or set allow_unstable=true for a stability experiment"
-        )
-    if scene.method.name == "hybrid" and scene.n_steps * scene.hybrid.particle_substeps >= HYBRID_STEP_LIMIT:
-        raise ConfigError(
-            f"t_end = {scene.time.t_end} is {scene.n_steps * scene.hybrid.particle_substeps:,} particle steps; "
-            "the hybrid numbers "
-            f"particle births in 27 bits: give fewer than {HYBRID_STEP_LIMIT:,} (shorter t_end, larger C or fewer "
-            "particle_substeps)")
-    if scene.method.name in ("particle", "hybrid") and clamp > CLAMP_WARN:
-        warnings.warn(f"C = {scene.time.C}: a particle step is clamped to ±Δx with probability {clamp:.2g} per axis "
-                      f"and step (> {CLAMP_WARN:g}); lower C to make clamping rare", ClampWarning, stacklevel=3)
-
-
 # ---------------------------------------------------------------------------------------
 # run options that are not scene keys
 # ---------------------------------------------------------------------------------------
 def check_options(scene: Scene, *, out: str | Path | None = None, executor: str = "local",
                   workers: int | None = None, chunk: int | None = None, threads: int | None = None,
                   scheduler: str | None = None, checkpoint_every: int = 0, restart: str | Path | None = None,
-                  movie: bool = False, frames: bool | None = None) -> None:
+                  movie: bool = False, frames: bool | None = None, member0: int = 0) -> None:
     """Check the options of a run (the command line's, or :func:`ti_dk.run`'s) before anything starts;
     options that would silently undo each other are refused too."""
     def whole(name: str, value: Any, lo: int, hi: int | None = None) -> None:
@@ -373,10 +332,13 @@ def check_options(scene: Scene, *, out: str | Path | None = None, executor: str 
 
     if movie and frames is False:
         raise ConfigError("--movie is made of frames: drop --no-frames or --movie")
+    if checkpoint_every and out is None:  # it would be dropped silently: a checkpoint is written into out
+        raise ConfigError("checkpoint_every needs an output folder to write the checkpoint into: give out")
     whole("--threads", threads, 1, 4096)
     whole("--checkpoint-every", checkpoint_every, 0, MAX_STEPS)
     whole("--workers", workers, 1, 4 * (os.cpu_count() or 1) if scheduler is None else 100_000)
     whole("--chunk", chunk, 1, MAX_MEMBERS)
+    whole("member0", member0, 0, MAX_MEMBERS - scene.method.ensemble)  # the last member's index fits 32 bits
     if executor == "dask":
         for flag, given in (("--checkpoint-every", checkpoint_every), ("--restart", restart), ("--movie", movie)):
             if given:

@@ -122,12 +122,16 @@ class Key:
             return value
         if isinstance(value, bool) or not isinstance(value, (int, float)) or (
                 self.kind == "int" and not isinstance(value, int)):
-            raise ConfigError(f"{name} = {value!r}: give {'a whole number' if self.kind == 'int' else 'a number'}")
+            raise ConfigError(f"{name} = {_shown(value)}: give {'a whole number' if self.kind == 'int' else 'a number'}")
         if self.kind == "real":
-            value = float(value)
+            try:
+                value = float(value)
+            except OverflowError:  # a whole number beyond the largest float, 1.8e308
+                raise ConfigError(f"{name} = {_shown(value)}: beyond double precision; give {self.describe()}") from None
         below = self.lo is not None and (value < self.lo or (self.above and value == self.lo))
-        if not math.isfinite(value) or below or (self.hi is not None and value > self.hi):
-            raise ConfigError(f"{name} = {value!r}: give {self.describe()}")
+        big = self.kind == "int" and self.hi is None and abs(value) > 2**63 - 1  # no key takes more than 64 bits
+        if (self.kind == "real" and not math.isfinite(value)) or below or big or (self.hi is not None and value > self.hi):
+            raise ConfigError(f"{name} = {_shown(value)}: give {self.describe()}" + " below 2^63" * big)
         return value
 
 
@@ -135,6 +139,12 @@ def did_you_mean(name: Any, names) -> str:
     """``"did you mean a or b? "``: the ``names`` nearest a misspelt ``name`` (``difflib``), or ``""``."""
     near = difflib.get_close_matches(str(name), list(names), n=3)
     return f"did you mean {' or '.join(near)}? " if near else ""
+
+
+def _shown(value: Any) -> str:
+    """A value as a message shows it: a whole number of many digits by its first ones and its size."""
+    text = repr(value)
+    return text if len(text) <= 24 else f"{text[:8]}… (a {len(text.lstrip('-'))}-digit number)"
 
 
 def key(kind: str, doc: str, default: Any = dataclasses.MISSING, flat: str | None = None, **limits) -> Any:
@@ -183,6 +193,9 @@ class TimeKeys:
     C: float = key("real", "time step dt = C min(dx)^2", 0.0625, lo=0.0, above=True)
     t_end: float = key("real", "end time", 0.01, lo=0.0, above=True)
     allow_unstable: bool = key("bool", "accept C beyond the explicit stability limit (experiments)", False)
+    runaway: str = key("choice", "a run that blows up (NaN, a density or mass change beyond any particle count): stop, "
+                       "or continue (said once and marked in the file; NaN still stops)", "stop",
+                       choices=("stop", "continue"))
 
 
 @dataclass(frozen=True)
@@ -212,12 +225,13 @@ class HybridKeys:
                              "mean", choices=GHOST_PROFILES)
     particle_substeps: int = key("int", "particle steps of dt/k per SPDE step (paper, end of 3.1)", 1,
                                  lo=1, hi=64)
-    regrid_interval: int = key("int", "steps between regrids (0: the region is fixed)", 10, lo=0)
-    buffer: int = key("int", "grow tagged cells by this many cells", _RG.buffer, lo=0)
+    regrid_interval: int = key("int", "steps between regrids (0: the region is fixed)", 10, lo=0, hi=MAX_STEPS)
+    buffer: int = key("int", "grow tagged cells by this many cells (at most the most cells along an axis)", _RG.buffer,
+                      lo=0)
     grid_efficiency: float = key("real", "smallest tagged fraction of a box", _RG.efficiency,
                                  lo=0.0, hi=1.0, above=True)
-    min_box: int = key("int", "smallest box side in cells", _RG.min_box, lo=1)
-    max_box: int = key("int", "largest box side in cells", _RG.max_box, lo=1)
+    min_box: int = key("int", "smallest box side in cells (at most the most cells along an axis)", _RG.min_box, lo=1)
+    max_box: int = key("int", "largest box side in cells", _RG.max_box, lo=1, hi=MAX_FIELD)
     regrid_floor: float = key("real", "an uncovered cell below this times threshold before a step: cover all "
                               "below threshold (0: scheduled regrids only)", _RG.floor, lo=0.0, hi=1.0)
     pool_layout: str = key("choice", "particle storage: flat (slots per member) or pointer (blocks of cells, "
@@ -238,7 +252,7 @@ class StatsKeys:
                                           (), form="a list of numbers in [0, t_end]")
     t_equil: float | None = key("special", "stationary runs: pool samples after this time (default: not stationary)",
                                 None, form="a number in [0, t_end)")
-    sample_every: int = key("int", "stationary runs: pool every k-th step", 1, lo=1)
+    sample_every: int = key("int", "stationary runs: pool every k-th step", 1, lo=1, hi=MAX_STEPS)
     histogram: tuple[int, int] | None = key("special", "per-cell histogram of particles per cell, one-particle bins",
                                             None, form="[lo, hi], whole numbers with lo < hi")
     structure_factor: bool = key("bool", "static structure factor S(k) of the count fluctuations per row "
@@ -343,17 +357,20 @@ class Scene:
                 out[_flat_name(field_)] = getattr(getattr(self, sec), field_.name)
         return out
 
-    def replace(self, **flat: Any) -> "Scene":
+    def replace(self, **changes: Any) -> "Scene":
         """This scene with some keys changed by flat name, the initial condition's own parameters
-        included (no new validation: for values already valid; :func:`load_scene` validates)."""
-        top = {k: flat.pop(k) for k in ("name", "description") if k in flat}
-        params = {k: flat.pop(k) for k in list(flat) if k in self.init.params}
-        parts = {"init": {"items": tuple(sorted((self.init.params | params).items()))}} if params else {}
-        for k, v in flat.items():
-            sec, field_ = WHERE[k]
-            parts.setdefault(sec, {})[field_.name] = v
-        return dataclasses.replace(self, **top, **{s: dataclasses.replace(getattr(self, s), **kw)
-                                                   for s, kw in parts.items()})
+        included, validated by the code that validates :func:`~ti_dk.scene.load.load_scene`
+        (``load.make_scene``; another ``init`` drops this one's parameters, another ``t_end`` its
+        place among the output times)."""
+        flat = self.flat()
+        if changes.get("init", self.init.name) != self.init.name:
+            flat = {k: v for k, v in flat.items() if k not in self.init.params}
+        if "t_end" in changes and "output_times" not in changes:
+            flat["output_times"] = [t for t in self.stats.output_times if t != self.time.t_end]
+        return MAKE_SCENE[0](flat | changes)
+
+
+MAKE_SCENE: list = []  # load.make_scene, which load.py puts here (it imports this module, so not the reverse)
 
 
 # ---------------------------------------------------------------------------------------
@@ -366,17 +383,18 @@ def _flat_name(field_: dataclasses.Field) -> str:
 WHERE = {f.name: (None, f) for f in dataclasses.fields(Scene) if "key" in f.metadata} | {
     _flat_name(f): (sec, f) for sec, cls in SECTIONS.items() for f in dataclasses.fields(cls) if "key" in f.metadata}
 PPC_LIMITS = dict(lo=0.0, hi=MAX_PPC)
+SHAPE_LIMITS = dict(lo=0.0, hi=1e6)  # a shape in the unit box: far beyond it, its square would overflow
 INIT_KEYS = {  # the initial conditions' parameters (their defaults are in initial.py)
     "ppc": Key("real", "particles per cell (void: outside the void)", **PPC_LIMITS),
     "ppc_outer": Key("real", "particles per cell outside the outer shape", **PPC_LIMITS),
     "ppc_inner": Key("real", "particles per cell inside the inner shape", **PPC_LIMITS),
     "void_lo": Key("real", "void: where the void starts along axis 0 (length units; may lie outside)"),
     "void_hi": Key("real", "void: where the void ends along axis 0 (length units, >= void_lo)"),
-    "outer_r": Key("real", "radius of the outer shape (unit box)", lo=0.0),
-    "inner_r": Key("real", "radius of the inner shape (unit box)", lo=0.0),
-    "inner_x": Key("real", "spheres: offset of the inner sphere along x"),
-    "inner_y": Key("real", "spheres: offset of the inner sphere along y"),
-    "inner_z": Key("real", "spheres: offset of the inner sphere along z"),
+    "outer_r": Key("real", "radius of the outer shape (unit box)", **SHAPE_LIMITS),
+    "inner_r": Key("real", "radius of the inner shape (unit box)", **SHAPE_LIMITS),
+    "inner_x": Key("real", "spheres: offset of the inner sphere along x", lo=-SHAPE_LIMITS["hi"], hi=SHAPE_LIMITS["hi"]),
+    "inner_y": Key("real", "spheres: offset of the inner sphere along y", lo=-SHAPE_LIMITS["hi"], hi=SHAPE_LIMITS["hi"]),
+    "inner_z": Key("real", "spheres: offset of the inner sphere along z", lo=-SHAPE_LIMITS["hi"], hi=SHAPE_LIMITS["hi"]),
     "density": Key("text", "expression: particles per cell as a formula in x, y, z (like potential)"),
     "density_file": Key("text", "array: particles per cell from a .npy file or file.h5:/dataset, shaped like cells"),
 }
