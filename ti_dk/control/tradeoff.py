@@ -167,9 +167,10 @@ def _pilot(scene: Scene, sets: list[Candidate], members: int | None, t_end: floa
                               f"{scene.stats.t_equil:g}")
         kept = [t for t in scene.stats.output_times if t <= t_end * (1 + 1e-9)]
         keys |= {"t_end": t_end, "output_times": kept or [t_end]}
-    if members is None:
-        one = sum(work_estimate(make_scene(scene.flat() | keys | c.overrides | {"ensemble": 1}))[1] for c in sets)
-        members = max(MIN_PILOT, min(scene.method.ensemble, 2 * int(budget / max(one, 1e-9) / 2)))
+    if members is None:  # the estimates are linear in the members: a fixed part and a part per member
+        one, two = (sum(work_estimate(make_scene(scene.flat() | keys | c.overrides | {"ensemble": m}))[1] for c in sets)
+                    for m in (1, 2))
+        members = max(MIN_PILOT, min(scene.method.ensemble, 2 * int((budget - 2 * one + two) / max(two - one, 1e-12) / 2)))
     if members < 4:
         raise ConfigError(f"--pilot-ensemble {members}: a pilot needs at least 4 members (20 or more to be of use)")
     return make_scene(scene.flat() | keys | {"ensemble": members})
