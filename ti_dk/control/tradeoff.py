@@ -131,7 +131,7 @@ def tradeoff(scene: Scene | str, *, planned: int | None = None, accuracy: float 
         raise ConfigError(f"the error to meet must be above 0 (got {target})")
     sets = [Candidate(REFERENCE, {"method": REFERENCE, "precision": "f64"})]
     sets += [c for c in (candidates(scene) if defaults else []) + list(tries or []) if c.label != REFERENCE]
-    pilot = _pilot(scene, sets, pilot_ensemble, pilot_t_end, budget)
+    pilot = _pilot(scene, sets, pilot_ensemble, pilot_t_end, budget, planned)
     scenes = [make_scene(pilot.flat() | c.overrides | ({"seed": pilot.method.seed + 1} if i == 0 else {}))
               for i, c in enumerate(sets)]
     _announce(scenes)
@@ -157,8 +157,10 @@ def tradeoff(scene: Scene | str, *, planned: int | None = None, accuracy: float 
     return result
 
 
-def _pilot(scene: Scene, sets: list[Candidate], members: int | None, t_end: float | None, budget: float) -> Scene:
-    """The pilot scene: the same grid and physics, ``members`` (or what fits ``budget``), a horizon
+def _pilot(scene: Scene, sets: list[Candidate], members: int | None, t_end: float | None, budget: float,
+           planned: int) -> Scene:
+    """The pilot scene: the same grid and physics, ``members`` (or what fits ``budget``, at most
+    ``planned``), a horizon
     of ``t_end`` (output times past it dropped; none left: t_end itself), nothing run alongside."""
     keys = {"compare": None}
     if t_end is not None:
@@ -170,7 +172,7 @@ def _pilot(scene: Scene, sets: list[Candidate], members: int | None, t_end: floa
     if members is None:  # the estimates are linear in the members: a fixed part and a part per member
         one, two = (sum(work_estimate(make_scene(scene.flat() | keys | c.overrides | {"ensemble": m}))[1] for c in sets)
                     for m in (1, 2))
-        members = max(MIN_PILOT, min(scene.method.ensemble, 2 * int((budget - 2 * one + two) / max(two - one, 1e-12) / 2)))
+        members = max(MIN_PILOT, min(planned, 2 * int((budget - 2 * one + two) / max(two - one, 1e-12) / 2)))
     if members < 4:
         raise ConfigError(f"--pilot-ensemble {members}: a pilot needs at least 4 members (20 or more to be of use)")
     return make_scene(scene.flat() | keys | {"ensemble": members})
