@@ -60,19 +60,22 @@ def _judge(rows, target):
 def test_front_and_pick_do_not_tell_apart_what_the_pilot_cannot():
     rows = [_row("particle", 100.0, 0.0, 0.0), _row("a", 1.0, 16.0, 1.0), _row("b", 2.0, 4.0, 1.0),
             _row("c", 3.0, 4.5, 1.0), _row("d", 50.0, 0.5, 0.2)]
-    res = _judge(rows, target=2.5)
+    res = _judge(rows, target=2.2)
     front = {r["label"]: r["pareto"] for r in res.rows}
     # c is dearer than b and the pilot cannot tell their errors apart (4.5 − 4 < 2·√2): off the front
     assert front == {"particle": True, "a": True, "b": True, "c": False, "d": True}
-    assert res.pick == "b" and res.rows[2]["same_as"] == ["c"]  # b: error 2 ≤ 2.5, the cheapest that meets it
+    assert res.pick == "b" and res.rows[2]["same_as"] == ["c"]  # b: error 2 ≤ 2.2, the cheapest that meets it
     assert res.pick_scene.method.ensemble == 100 and res.pick_scene.name == "void1d_pick"
     assert "pick: b" in res.answer() and "cannot tell its error from: c" in res.answer()
+    assert [r["sure"] for r in res.rows] == [True, True, False, False, True]  # b, c: their bands span 2.2
 
 
 def test_no_setting_meets_the_target_names_the_particle_method():
     res = _judge([_row("particle", 100.0, 0.0, 0.0), _row("a", 1.0, 16.0, 1.0)], target=1.0)
     assert res.pick == "particle" and res.pick_scene.method.name == "particle"
     assert "no candidate meets error ≤ 1 SE at 100 members: use the particle method" in res.answer()
+    res = _judge([_row("particle", 100.0, 0.0, 0.0), _row("a", 1.0, 1.5, 1.0)], target=1.0)
+    assert res.pick == "particle" and "they might meet it too" in res.answer() and "a (1.22 [0.707–1.58], 1 s)" in res.answer()
 
 
 def test_bad_requests_are_refused_with_one_line():

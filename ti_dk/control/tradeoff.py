@@ -103,6 +103,11 @@ class Tradeoff:
                     f"meets {what} at {self.planned:,} members")
             if e[2] > self.target:
                 text += "; within the pilot's uncertainty it might not: a larger --pilot-ensemble would say"
+        maybe = [r for r in self.rows if not r["meets"] and r["error"][1] <= self.target and r["cost"] < row["cost"]]
+        if maybe:
+            text += ("\ncheaper, and within the pilot's uncertainty they might meet it too (a larger --pilot-ensemble "
+                     "would say): " + ", ".join(f"{r['label']} ({r['error'][0]:.3g} [{r['error'][1]:.3g}–"
+                                                f"{r['error'][2]:.3g}], {r['cost']:.3g} s)" for r in maybe))
         if row["same_as"]:
             text += f"\nthe pilot cannot tell its error from: {', '.join(row['same_as'])}"
         return text
@@ -219,6 +224,7 @@ def _judge(rows, planned, pilot, measure, target, scene, cells, times, maps) -> 
         worst = max(bias.MOMENTS, key=lambda k: r["summaries"][k, measure][0])
         r["error"], r["worst"] = r["summaries"][worst, measure], r["squares"][worst, measure]
         r["meets"] = None if target is None else bool(r["error"][0] <= target)
+        r["sure"] = target is None or not r["error"][1] <= target < r["error"][2]  # the band does not span it
     for r in rows:
         r["same_as"] = [o["label"] for o in rows if o is not r and not bias.differ(r["worst"], o["worst"])]
         r["pareto"] = not any(_dominates(o, r) for o in rows if o is not r)

@@ -18,7 +18,7 @@ def columns(row: dict) -> dict:
     """One candidate's row as flat columns (CSV and HDF5): every summary with its one-SE band."""
     out = {"setting": row["label"], "overrides": json.dumps(row["overrides"]), "cost_s": row["cost"],
            "pilot_wall_s": row["wall"], "error": row["error"][0], "error_low": row["error"][1],
-           "error_high": row["error"][2], "pareto": row["pareto"], "meets": row["meets"],
+           "error_high": row["error"][2], "pareto": row["pareto"], "meets": row["meets"], "sure": row.get("sure", True),
            "negative_cells": row["negative_cells"], "indistinguishable_from": "; ".join(row["same_as"])}
     for k in MOMENTS:
         for s in SUMMARIES:
@@ -29,13 +29,15 @@ def columns(row: dict) -> dict:
 
 def table(rows: list[dict], measure: str) -> str:
     """The printed table: cost at the planned ensemble, each moment's error (``measure``: ``z`` in
-    SEs at the planned ensemble, ``rel`` relative) with its band, the worst, Pareto ★, meets."""
+    SEs at the planned ensemble, ``rel`` relative) with its band, the worst, Pareto ★, meets (``?``:
+    the band spans the target, the pilot cannot tell)."""
     head = ["setting", "cost [s]"] + [SHORT[k] for k in MOMENTS] + ["error", "front", "meets"]
     lines = []
     for r in rows:
         cells = [r["label"], f"{r['cost']:.3g}"]
         cells += [_band(r["summaries"][k, measure], measure) for k in MOMENTS]
-        cells += [_band(r["error"], measure), "★" if r["pareto"] else "", {True: "yes", False: "no", None: "?"}[r["meets"]]]
+        meets = {True: "yes", False: "no", None: ""}[r["meets"]] + ("" if r.get("sure", True) else "?")
+        cells += [_band(r["error"], measure), "★" if r["pareto"] else "", meets]
         lines.append(cells)
     widths = [max(len(str(c)) for c in col) for col in zip(head, *lines)]
     fmt = "  ".join(f"{{:{'<' if i == 0 else '>'}{w}}}" for i, w in enumerate(widths))
