@@ -39,7 +39,8 @@ def case(name, planned, z, members, t_end, tries, out: Path) -> dict:
     pick = rows[pilot.pick]
     turned = [r for r in pilot.rows if not r["meets"] and r["cost"] < pick["cost"]]
     refused = min(turned, key=lambda r: r["cost"]) if turned else None
-    tries = [Candidate(r["label"], r["overrides"]) for r in (pick, refused) if r is not None and r["label"] != "particle"]
+    tries = [Candidate(r["label"], r["overrides"]) for r in (pick, refused)
+             if r is not None and r["label"] != "particle"]
     check = ti_dk.tradeoff(scene, planned=planned, accuracy=z, tries=tries, defaults=False,
                            pilot_ensemble=10 * members, pilot_t_end=t_end, out=out / f"{name}_{planned}_check")
     at10 = {r["label"]: r["error"] for r in check.rows}

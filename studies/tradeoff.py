@@ -113,8 +113,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--planned", type=int, default=20000, help="the planned ensemble errors are measured at")
     p.add_argument("--cells", type=int, default=64, help="ellipse2d cells per axis")
     p.add_argument("--ellipse-members", type=int, default=16, help="ellipse2d pilot members")
-    p.add_argument("--ellipse-t-end", type=float, default=ti_dk.load_scene("ellipse2d").stats.output_times[ELLIPSE_OUTPUT],
-                   help=f"ellipse2d end time: the scene's output time number {ELLIPSE_OUTPUT + 1}")
+    p.add_argument("--ellipse-t-end", type=float,
+                   default=ti_dk.load_scene("ellipse2d").stats.output_times[ELLIPSE_OUTPUT], help=f"ellipse2d end time: the scene's output time number {ELLIPSE_OUTPUT + 1}")
     p.add_argument("--only", nargs="+", metavar="SETTING", help="run only these settings (labels as in the table)")
     p.add_argument("--out", default="renders/tradeoff")
     args = p.parse_args(argv)

@@ -17,7 +17,7 @@ import argparse
 import sys
 
 from .control import runtime
-from .control.tradeoff import BELOW, BUDGET, Candidate, tradeoff
+from .control.tradeoff import ABOVE, BELOW, BUDGET, Candidate, tradeoff
 from .scene.cli import guarded, parser, scene_of, warn
 
 
@@ -38,7 +38,10 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                    help="the pilot's time by the work estimates, when --pilot-ensemble is not given")
     p.add_argument("--below", type=float, default=BELOW, metavar="PPC",
                    help="score the cells whose mean (particles per cell) is below this")
-    p.add_argument("--times", type=float, nargs="+", metavar="T", help="score these output times (default: all after 0)")
+    p.add_argument("--above", type=float, default=ABOVE, metavar="PPC",
+                   help="and above this (emptier cells hold too few particles for a pilot to see)")
+    p.add_argument("--times", type=float, nargs="+", metavar="T",
+                   help="score these output times (default: all after 0)")
     return p.parse_args(argv)
 
 
@@ -49,8 +52,8 @@ def _run(args: argparse.Namespace) -> int:
     runtime.init(args.arch, args.threads)
     result = tradeoff(scene, planned=args.ensemble, accuracy=args.accuracy, rel_error=args.rel_error, tries=tries,
                       defaults=not args.no_defaults, pilot_ensemble=args.pilot_ensemble, pilot_t_end=args.pilot_t_end,
-                      below=args.below, times=args.times, budget=args.budget, progress=not args.no_progress,
-                      out=args.out)
+                      below=args.below, above=args.above, times=args.times, budget=args.budget,
+                      progress=not args.no_progress, out=args.out)
     print(result.report())
     print(f"wrote: {args.out}/tradeoff.csv, tradeoff.h5, tradeoff.png"
           + (f", {scene.name}_pick.toml (run it: python -m ti_dk.scene {args.out}/{scene.name}_pick.toml)"

@@ -1,17 +1,18 @@
-"""The speed/accuracy trade on a user's own scene: a pilot of candidate settings against the
-particle method, the bias of every per-cell moment with its standard error, cost against error,
-and the cheapest setting that meets a named error (``python -m ti_dk.tradeoff``, :func:`tradeoff`).
+"""The speed/accuracy trade on a user's own scene: a pilot of candidate settings against the particle
+method, the bias of every per-cell moment with its standard error, cost against error, and the
+cheapest setting that meets a named error (``python -m ti_dk.tradeoff``, :func:`tradeoff`).
 
-The pilot keeps the scene's grid and physics and shrinks the ensemble (and, if asked, the
-horizon); every candidate runs with the same members count, the reference with another seed. Each
-row's samples are scored by :mod:`ti_dk.core.bias` over the cells asked for (default: every
-output time after 0, the cells where the reference's mean is below ``below`` particles). The
-cost of a setting is its pilot's stepping time (compilation and set-up apart) scaled to the
-planned ensemble and the full horizon by the work estimates (:func:`ti_dk.scene.estimates.work_estimate`:
-their per-step overhead and per-member work, at this machine's measured speed). The error of a setting is its worst moment's summary: in
-standard errors of a run of the planned ensemble (``z``), or relative (``rel``). Two settings
-whose errors lie within 2 standard errors of their difference are not told apart: the cheaper
-one dominates on the Pareto front, and the pick says which others it cannot tell from.
+The pilot keeps the scene's grid and physics and shrinks the ensemble (and, if asked, the horizon);
+every candidate runs with the same members count, the reference with another seed. Each row's
+samples are scored by :mod:`ti_dk.core.bias` over the cells asked for (default: every output time
+after 0, the cells where the reference's mean lies between ``above`` and ``below`` particles). The
+cost of a setting is its pilot's stepping time (compilation and set-up apart) scaled to the planned
+ensemble and the full horizon by the work estimates (:func:`ti_dk.scene.estimates.work_estimate`:
+their per-step overhead and per-member work, at this machine's measured speed). The error of a
+setting is its worst moment's summary: in standard errors of a run of the planned ensemble (``z``),
+or relative (``rel``). Two settings whose errors lie within 2 standard errors of their difference
+are not told apart: the cheaper one dominates on the Pareto front, and the pick says which others it
+cannot tell from.
 """
 from __future__ import annotations
 
@@ -33,6 +34,8 @@ from ..scene.schema import ConfigError, Scene
 REFERENCE = "particle"
 BUDGET = 120.0  # seconds the pilot may take by the work estimates, when its ensemble is not given
 BELOW = 10.0  # default: the cells whose reference mean is below this many particles
+ABOVE = 0.5  # and above this many: emptier cells hold too few particles for a pilot to see (and then
+# a 10x larger pilot scores cells the smaller one could not, measured: fv on void1d read 12.7 SE, then 28)
 MIN_PILOT = 40  # members
 
 
@@ -116,16 +119,44 @@ class Tradeoff:
 def tradeoff(scene: Scene | str, *, planned: int | None = None, accuracy: float | None = None,
              rel_error: float | None = None, tries: list[Candidate] | None = None, defaults: bool = True,
              pilot_ensemble: int | None = None, pilot_t_end: float | None = None, below: float = BELOW,
-             times: list[float] | None = None, budget: float = BUDGET, progress: bool | None = None,
-             out: str | Path | None = None) -> Tradeoff:
-    """Run the pilot of ``scene`` (a Scene, or a scene name or path) and score every setting.
+             above: float = ABOVE, times: list[float] | None = None, budget: float = BUDGET,
+             progress: bool | None = None, out: str | Path | None = None) -> Tradeoff:
+    """Run the pilot of ``scene`` and score every setting against the particle method.
 
-    ``planned``: the ensemble the user will run (default: the scene's); ``accuracy`` Z (error in
-    SEs at ``planned``) or ``rel_error`` (relative bias) names the error to meet; ``tries`` adds
-    settings (``defaults=False``: only those); ``pilot_ensemble`` (default: what fits ``budget``
-    seconds by the work estimates) and ``pilot_t_end`` size the pilot; ``below`` and ``times``
-    choose the cells and rows scored. With ``out``: ``tradeoff.csv``, ``tradeoff.h5``,
-    ``tradeoff.png`` and, with a target, ``<scene>_pick.toml`` there.
+    Parameters
+    ----------
+    scene : Scene or str or Path
+        The scene (from :func:`ti_dk.load_scene`), or a scene name or path.
+    planned : int, optional
+        The ensemble the user will run (default: the scene's); errors are in its standard errors.
+    accuracy, rel_error : float, optional
+        The error to meet: in standard errors at ``planned``, or relative (one of them).
+    tries : list of Candidate, optional
+        Settings of one's own (``Candidate.parse("method=hybrid threshold=3")``); ``defaults=False``
+        runs only those (and the particles).
+    pilot_ensemble : int, optional
+        Members of the pilot (default: what fits ``budget`` seconds by the work estimates).
+    pilot_t_end : float, optional
+        A shorter horizon for the pilot (output times past it dropped).
+    above, below : float
+        The cells scored: the reference's mean between these, in particles per cell.
+    times : list of float, optional
+        The output times scored (default: all after 0).
+    progress : bool, optional
+        A progress bar on stderr (default: when stderr is a terminal).
+    out : str or Path, optional
+        Where to write ``tradeoff.csv``, ``tradeoff.h5``, ``tradeoff.png`` and, with a target,
+        ``<scene>_pick.toml``.
+
+    Returns
+    -------
+    Tradeoff
+        The rows, the pick and its full-size scene; ``report()`` is the printed table and answer.
+
+    Raises
+    ------
+    ConfigError
+        With one line saying what to change.
     """
     scene = load_scene(scene) if isinstance(scene, (str, Path)) else scene
     if accuracy is not None and rel_error is not None:
@@ -149,7 +180,7 @@ def tradeoff(scene: Scene | str, *, planned: int | None = None, accuracy: float 
             res = controller.run(sc, progress=False, samples=True)
             ens = bias.Ensemble([s * sc.grid.cell_volume for s in res.samples])
             if ref is None:
-                ref, cells = ens, _cells(ens, res.times, below, times)
+                ref, cells = ens, _cells(ens, res.times, above, below, times)
             ok = bias.usable(ref, [ens], cells)
             rows.append(_row(c, res, scene, pilot, planned, bias.compare(ens, ref, planned, ok)))
             maps[c.label] = {f"{k}_{p}": (ens.whole[0][k] - ref.whole[0][k]) if p == "bias" else
@@ -191,20 +222,21 @@ def _announce(scenes: list[Scene]) -> None:
           f"estimates, plus a few seconds of compilation each", file=sys.stderr)
 
 
-def _cells(ref: bias.Ensemble, row_times: np.ndarray, below: float, times: list[float] | None) -> np.ndarray:
+def _cells(ref: bias.Ensemble, row_times: np.ndarray, above: float, below: float,
+           times: list[float] | None) -> np.ndarray:
     """The (row, cell) mask scored: the rows at ``times`` (default: every one after t = 0), the
-    cells where the reference's mean is below ``below`` particles."""
+    cells where the reference's mean lies between ``above`` and ``below`` particles."""
     rows = row_times > 0 if times is None else np.array([any(math.isclose(t, x, rel_tol=1e-6, abs_tol=1e-12)
                                                              for x in times) for t in row_times])
     if times is not None and rows.sum() < len(times):
         raise ConfigError(f"--times: the pilot's output times are {', '.join(f'{t:g}' for t in row_times)}; "
                           "name some of those")
     shape = (-1,) + (1,) * (ref.whole[0]["mean"].ndim - 1)
-    cells = rows.reshape(shape) & (ref.whole[0]["mean"] < below)
-    cells = bias.usable(ref, [], cells)
+    mean = ref.whole[0]["mean"]
+    cells = bias.usable(ref, [], rows.reshape(shape) & (mean < below) & (mean > above))
     if not cells.any():
-        raise ConfigError(f"no cell of the scored rows has a mean below {below:g} particles with particles in it: "
-                          "raise --below")
+        raise ConfigError(f"no cell of the scored rows has a mean between {above:g} and {below:g} particles: "
+                          "lower --above or raise --below")
     return cells
 
 

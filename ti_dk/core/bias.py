@@ -108,8 +108,8 @@ def compare(cand: Ensemble, ref: Ensemble, planned: int, cells: np.ndarray) -> d
             b.append((cv[k] - rv[k])[cells])
             u.append(np.concatenate([cu[k][:, cells], -ru[k][:, cells]]))
         sigma2 = (ref.whole[1][k] ** 2 * ref.members / planned)[cells]
-        weights = {"bias": np.full(count, 1.0 / count), "rel": np.full(count, 1.0 / (ref.whole[0][k][cells] ** 2).sum()),
-                   "z": 1.0 / (count * sigma2)}
+        weights = {"bias": np.full(count, 1.0 / count),
+                   "rel": np.full(count, 1.0 / (ref.whole[0][k][cells] ** 2).sum()), "z": 1.0 / (count * sigma2)}
         for s, w in weights.items():
             out[k, s] = _square(b[0], b[1], u[0], u[1], w)
     return out
