@@ -93,3 +93,16 @@ def test_default_candidates_span_the_settings():
     labels = [c.label for c in tr.candidates(ti_dk.load_scene("ellipse2d"))]
     assert labels[:2] == ["fv", "gaussian"] and "hybrid threshold 6" in labels and "hybrid threshold 12" in labels
     assert any("substeps" in x for x in labels) and any("f32" in x for x in labels) and "fv C=0.125" in labels
+
+
+def test_run_keeps_the_samples_behind_each_row():
+    """``run(samples=True)``: each row's moments are those of its samples (a stationary row pools its steps)."""
+    for name, keys, per_member in (("void1d", TINY, 1), ("trap1d", dict(cells=[8], t_end=0.08, t_equil=0.04,
+                                                                          sample_every=16), 3)):
+        res = ti_dk.run(ti_dk.load_scene(name, method="fv", ensemble=5, **keys), samples=True)
+        assert len(res.samples) == len(res.times) and res.samples[-1].shape == (per_member, 5, *res.scene.grid.cells)
+        for i, x in enumerate(res.samples):
+            value, _ = ti_dk.core.bias.moments(x)
+            np.testing.assert_allclose(value["mean"], res.stats.mean[i], rtol=1e-12)
+            np.testing.assert_allclose(value["variance"], res.stats.variance[i], rtol=1e-9)
+    assert ti_dk.run(ti_dk.load_scene("void1d", method="fv", ensemble=2, **TINY)).samples is None
