@@ -7,7 +7,8 @@ import os
 import sys
 
 if any(f" -m ti_dk.{m} " in f" {' '.join(getattr(sys, 'orig_argv', []))} " for m in ("scene", "tradeoff")):
-    # the command lines (python -m ti_dk.scene, ti_dk.tradeoff): its stop-signal handlers go in before the seconds of imports below
+    # the command lines (python -m ti_dk.scene, ti_dk.tradeoff): their stop-signal handlers go in
+    # before the seconds of imports below
     from .control.signals import catch_early
 
     catch_early()
