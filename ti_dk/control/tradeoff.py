@@ -159,12 +159,7 @@ def tradeoff(scene: Scene | str, *, planned: int | None = None, accuracy: float 
         With one line saying what to change.
     """
     scene = load_scene(scene) if isinstance(scene, (str, Path)) else scene
-    if accuracy is not None and rel_error is not None:
-        raise ConfigError("give --accuracy or --rel-error, not both")
-    planned = planned or scene.method.ensemble
-    target = accuracy if rel_error is None else rel_error
-    if target is not None and not target > 0:
-        raise ConfigError(f"the error to meet must be above 0 (got {target})")
+    planned, target = planned or scene.method.ensemble, _target(accuracy, rel_error)
     sets = [Candidate(REFERENCE, {"method": REFERENCE, "precision": "f64"})]
     sets += [c for c in (candidates(scene) if defaults else []) + list(tries or []) if c.label != REFERENCE]
     pilot = _pilot(scene, sets, pilot_ensemble, pilot_t_end, budget, planned)
@@ -172,25 +167,42 @@ def tradeoff(scene: Scene | str, *, planned: int | None = None, accuracy: float 
               for i, c in enumerate(sets)]
     _announce(scenes)
     show = sys.stderr.isatty() if progress is None else progress
-    rows, maps = [], {}
+    rows, maps, cells, row_times = _measure(sets, scenes, scene, pilot, planned, (above, below, times), show)
+    measure = "z" if rel_error is None else "rel"
+    result = _judge(rows, planned, pilot, measure, target, scene, cells, row_times, maps)
+    if out is not None:
+        _write(result, Path(out), scene)
+    return result
+
+
+def _target(accuracy: float | None, rel_error: float | None) -> float | None:
+    """The error to meet (one of the two, above 0), or None."""
+    if accuracy is not None and rel_error is not None:
+        raise ConfigError("give --accuracy or --rel-error, not both")
+    target = accuracy if rel_error is None else rel_error
+    if target is not None and not target > 0:
+        raise ConfigError(f"the error to meet must be above 0 (got {target})")
+    return target
+
+
+def _measure(sets: list[Candidate], scenes: list[Scene], scene: Scene, pilot: Scene, planned: int, where: tuple,
+             show: bool) -> tuple[list[dict], dict, np.ndarray, np.ndarray]:
+    """Run every setting of the pilot (the reference first) and score it: its rows, its per-cell
+    maps, the (row, cell) mask scored (``where``: above, below, times) and the rows' times."""
+    rows, maps, ref = [], {}, None
     with tqdm(total=len(sets), unit="setting", disable=not show, file=sys.stderr) as bar:
-        ref = None
         for c, sc in zip(sets, scenes):
             bar.set_description(c.label)
             res = controller.run(sc, progress=False, samples=True)
             ens = bias.Ensemble([s * sc.grid.cell_volume for s in res.samples])
             if ref is None:
-                ref, cells = ens, _cells(ens, res.times, above, below, times)
+                ref, cells = ens, _cells(ens, res.times, *where)
             ok = bias.usable(ref, [ens], cells)
             rows.append(_row(c, res, scene, pilot, planned, bias.compare(ens, ref, planned, ok)))
             maps[c.label] = {f"{k}_{p}": (ens.whole[0][k] - ref.whole[0][k]) if p == "bias" else
                              np.hypot(ens.whole[1][k], ref.whole[1][k]) for k in bias.MOMENTS for p in ("bias", "se")}
             bar.update()
-    measure = "z" if rel_error is None else "rel"
-    result = _judge(rows, planned, pilot, measure, target, scene, cells, res.times, maps)
-    if out is not None:
-        _write(result, Path(out), scene)
-    return result
+    return rows, maps, cells, res.times
 
 
 def _pilot(scene: Scene, sets: list[Candidate], members: int | None, t_end: float | None, budget: float,
