@@ -108,9 +108,11 @@ def test_layout_names_every_module_once():
 
 
 def test_public_api_is_importable_from_the_top():
-    for name in ("load_scene", "run", "init", "Scene", "Result", "ConfigError", "SimulationError", "available_scenes"):
+    for name in ("load_scene", "run", "tradeoff", "init", "Scene", "Result", "ConfigError", "SimulationError",
+                 "available_scenes"):
         assert getattr(ti_dk, name) is not None
-    assert callable(ti_dk.run) and callable(ti_dk.load_scene)  # not shadowed by a subpackage of that name
+    # not shadowed by a subpackage or module of that name (ti_dk/tradeoff.py is the command line)
+    assert callable(ti_dk.run) and callable(ti_dk.load_scene) and callable(ti_dk.tradeoff)
 
 
 def test_pyproject_ships_every_subpackage_and_the_scene_files():

@@ -6,8 +6,9 @@ Importing ti_dk never starts Taichi; :func:`run` does (CPU unless told), or call
 import os
 import sys
 
-if " -m ti_dk.scene " in f" {' '.join(getattr(sys, 'orig_argv', []))} ":
-    # the command line (python -m ti_dk.scene): its stop-signal handlers go in before the seconds of imports below
+if any(f" -m ti_dk.{m} " in f" {' '.join(getattr(sys, 'orig_argv', []))} " for m in ("scene", "tradeoff")):
+    # the command lines (python -m ti_dk.scene, ti_dk.tradeoff): their stop-signal handlers go in
+    # before the seconds of imports below
     from .control.signals import catch_early
 
     catch_early()
@@ -22,7 +23,8 @@ from .output.files import package_version  # noqa: E402
 from .control.runtime import Result, init  # noqa: E402
 from .control.signals import SimulationError  # noqa: E402
 from .control.controller import run  # noqa: E402
+from .control.tradeoff import tradeoff  # noqa: E402  (python -m ti_dk.tradeoff is the module ti_dk/tradeoff.py)
 
 __version__ = package_version()  # from pyproject.toml, through the installed metadata
 
-__all__ = ["ConfigError", "Result", "Scene", "SimulationError", "available_scenes", "init", "load_scene", "run"]
+__all__ = ["ConfigError", "Result", "Scene", "SimulationError", "available_scenes", "init", "load_scene", "run", "tradeoff"]

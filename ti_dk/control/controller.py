@@ -41,12 +41,13 @@ class RunOptions:
     checkpoint_every: int = 0  # steps between checkpoints (0: none)
     restart: Path | None = None  # the checkpoint to continue from
     member0: int = 0  # the global index of the first member (a chunk of a larger ensemble)
+    samples: bool = False  # keep every member's density behind each statistics row (Result.samples)
 
 
 def run(scene: Scene | str | Path, out: str | Path | None = None, progress: bool | None = None,
         arch: str = "cpu", threads: int | None = None, *, frames: bool | None = None, movie: bool = False,
         snapshots: bool | None = None, checkpoint_every: int = 0, restart: str | Path | None = None,
-        member0: int = 0, overwrite: bool = False) -> Result:
+        member0: int = 0, overwrite: bool = False, samples: bool = False) -> Result:
     """Run a scene (a :class:`Scene`, validated again here, or a scene name or path); return its
     statistics and, with ``out``, write its files there.
 
@@ -59,6 +60,8 @@ def run(scene: Scene | str | Path, out: str | Path | None = None, progress: bool
     ``checkpoint_every`` K writes ``<scene>_<method>_checkpoint.h5`` every K steps (atomically);
     ``restart`` continues from such a file, bit for bit as if never interrupted. ``member0``: the
     global index of the first member (a chunk of a larger ensemble, see :mod:`ti_dk.control.ensemble`).
+    ``samples`` keeps every member's density behind each row in ``Result.samples`` (the
+    speed/accuracy pilot of :mod:`ti_dk.control.tradeoff` needs more than the rows' moments).
 
     Every path lies inside ``out`` (:class:`ti_dk.output.claim.Outputs`); the run holds an exclusive
     lock on it, so a second run there is refused, and replaces a complete result only with
@@ -72,7 +75,7 @@ def run(scene: Scene | str | Path, out: str | Path | None = None, progress: bool
     check_options(scene, out=out, threads=threads, checkpoint_every=checkpoint_every, restart=restart, movie=movie,
                   frames=frames, member0=member0)
     opts = RunOptions(progress, arch, threads, frames, movie, snapshots, checkpoint_every,
-                      Path(restart) if restart is not None else None, member0)
+                      Path(restart) if restart is not None else None, member0, samples)
     if not started_here():
         raise SimulationError("Taichi was started on another thread, and runs only on that one: call ti_dk.run "
                               "from the thread that started it, or run scenes in separate processes")
@@ -157,7 +160,8 @@ class Controller:
         self.rf = RunFile.of(outputs, scene) if outputs else None  # statistics and diagnostics
         frames = outputs is not None and (opts.frames is not False or opts.movie)
         steps = _frame_steps(scene, frames, opts.movie)
-        self.statistics = Statistics(scene, solver, self.rf, prog, steps if frames and scene.grid.dim == 1 else ())
+        self.statistics = Statistics(scene, solver, self.rf, prog, steps if frames and scene.grid.dim == 1 else (),
+                                     opts.samples)
         sampled = scene.method.ensemble > 1 or scene.stats.t_equil is not None  # rows with a variance
         # where the last row's S(k) is drawn at the end, or None
         self.spectrum_png = outputs.structure_factor if frames and scene.stats.structure_factor and sampled else None
@@ -271,7 +275,7 @@ class Controller:
                       diagnostics={k: np.asarray(v) for k, v in self.diagnostics.diag.items()},
                       final_density=self.solver.density(), wall_time=wall, path=self.rf.path if self.rf else None,
                       regrids=regrids, timing=timing, rows=st.rows, written=self.written,
-                      frames=[self.outputs.frames / p.name for p in self.frames.files()])
+                      frames=[self.outputs.frames / p.name for p in self.frames.files()], samples=st.samples)
 
 
 class Runaway:

@@ -10,6 +10,8 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
+import numpy as np
+
 from .checkpoint import Progress, write_checkpoint
 from ..scene.schema import Scene
 from ..output.files import RunFile, frame_file, pack_ids, write_openpmd
@@ -62,12 +64,16 @@ class Statistics:
     """Statistics rows over the ensemble at ``scene.output_steps`` (and at ``extra_steps``, rows only
     drawn by 1D frames); a stationary scene pools every ``sample_every``-th step after ``t_equil``
     into one row at the end. With ``stats.structure_factor`` the rows carry S(k)
-    (:mod:`ti_dk.core.spectra`)."""
+    (:mod:`ti_dk.core.spectra`). With ``keep``, ``samples`` holds each kept row's densities,
+    ``(samples per member, members, *cells)`` (a stationary row pools several steps)."""
 
     part = "statistics"
 
-    def __init__(self, scene: Scene, solver: Solver, rf: RunFile | None, prog: Progress, extra_steps=()):
+    def __init__(self, scene: Scene, solver: Solver, rf: RunFile | None, prog: Progress, extra_steps=(),
+                 keep: bool = False):
         self.scene, self.solver, self.rf = scene, solver, rf
+        self.samples: list | None = [] if keep else None  # per kept row, its densities (with keep)
+        self.taken: list = []  # the densities behind the row being taken (with keep)
         self.rows, self.times = prog.rows, prog.times  # the rows at output steps so far, and their times
         self.outputs = set(scene.output_steps)  # steps whose row is kept and written
         self.extra = set(extra_steps)  # steps whose row only draws a frame
@@ -93,18 +99,28 @@ class Statistics:
         sc = self.scene
         if self.stationary:
             if self._sampled(n):
-                self.pooled.add(self.solver.density())
+                self.pooled.add(self._density())
             row = self.pooled.row() if n == sc.n_steps else None
         else:
+            self.taken = []
             cs = self._cell_stats()
-            cs.add(self.solver.density())
+            cs.add(self._density())
             row = cs.row()
         self.latest = (n, row)
         if row is not None and n in self.outputs:
+            if self.samples is not None:
+                self.samples.append(np.stack(self.taken))
             self.rows.append(row)
             self.times.append(n * sc.dt)
             if self.rf:
                 self.rf.write_row(n * sc.dt, row)
+
+    def _density(self):
+        """Every member's density now (kept with ``keep``)."""
+        rho = self.solver.density()
+        if self.samples is not None:
+            self.taken.append(rho.copy())
+        return rho
 
     def _cell_stats(self) -> CellStats:
         sc = self.scene

@@ -187,6 +187,9 @@ class Result:
         Distributed runs: the chunk count and the chunks that were retried.
     path : pathlib.Path or None
         The run file (``OUT/<name>_<method>.h5``), if one was written.
+    samples : list of numpy.ndarray or None
+        With ``run(samples=True)``: per row, every member's density behind it,
+        ``(samples per member, ensemble, *cells)`` (a stationary row pools several steps).
     """
 
     scene: Scene  # the scene that ran
@@ -203,3 +206,4 @@ class Result:
     rows: list[dict] = field(default_factory=list, repr=False)  # statistics rows with their accumulators
     chunks: dict = field(default_factory=dict)  # distributed runs: chunk count and the retried chunks
     path: Path | None = None  # the run file, if one was written
+    samples: list[np.ndarray] | None = field(default=None, repr=False)  # run(samples=True): each row's densities

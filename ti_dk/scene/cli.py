@@ -1,9 +1,8 @@
 """``python -m ti_dk.scene NAME|PATH``: run a scene from the command line.
 
 Exit status: 0 done; 2 bad input (one line saying what to change; nothing written); 1 the run
-failed (I/O error, unstable scheme; the output is marked incomplete); 130/143/129 stopped by SIGINT,
-SIGTERM or SIGHUP (output closed and marked incomplete; a second signal before the current step
-ends leaves at once, the output marked incomplete as it was created).
+failed (I/O error, unstable scheme; the output is marked incomplete); 130/143 stopped by SIGINT or
+SIGTERM (output closed and marked incomplete).
 """
 from __future__ import annotations
 
@@ -17,14 +16,14 @@ from ..control import controller, ensemble, runtime, signals
 from ..output.files import OutputError
 
 
-class _Parser(argparse.ArgumentParser):
+class Parser(argparse.ArgumentParser):
     """argparse with one-line errors (no usage block), as every other input error."""
 
     def error(self, message: str):
-        sys.exit(_fail(f"{message}: see python -m ti_dk.scene --help"))
+        sys.exit(_fail(f"{message}: see {self.prog} --help"))
 
 
-class _Help(argparse.RawDescriptionHelpFormatter):
+class Help(argparse.RawDescriptionHelpFormatter):
     """Defaults shown where there is one, and only once."""
 
     def _get_help_string(self, action):
@@ -34,21 +33,28 @@ class _Help(argparse.RawDescriptionHelpFormatter):
         return text
 
 
-def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
-    p = _Parser(prog="python -m ti_dk.scene", description=__doc__, formatter_class=_Help,
-                epilog="scene keys, for --set KEY=VALUE (or the scene's TOML file):\n" + schema.keys_help())
+def parser(prog: str, doc: str, out: str, ensemble: str = "number of independent members") -> Parser:
+    """A command line on a scene: the scene, ``--ensemble``, ``--seed``, ``--t-end``, ``--set``,
+    ``--out`` (default ``out``: what it holds), ``--arch``, ``--threads``, ``--no-progress``."""
+    p = Parser(prog=prog, description=doc, formatter_class=Help,
+               epilog="scene keys, for --set KEY=VALUE (or the scene's TOML file):\n" + schema.keys_help())
     p.add_argument("scene", help=f"scene name ({', '.join(load.available_scenes())}) or a .toml path")
-    p.add_argument("--method", help="override the scene's method (" + ", ".join(schema.METHODS) + ")")
-    p.add_argument("--ensemble", type=int, help="number of independent members")
+    p.add_argument("--ensemble", type=int, help=ensemble)
     p.add_argument("--seed", type=int, help="random seed in [0, 2^64 - 1] (same seed, same result on any thread count)")
     p.add_argument("--t-end", type=float, help="end time")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="override any scene key (list below), e.g. --set C=0.05 --set cells=[64,64]")
-    p.add_argument("--out", default="renders", help="output directory for <scene>_<method>.h5 and the rest")
-    p.add_argument("--overwrite", action="store_true", help="replace a complete result already in --out")
+    p.add_argument("--out", default="renders", help=out)
     p.add_argument("--arch", default="cpu", help="Taichi backend: cpu or cuda")
     p.add_argument("--threads", type=int, help="CPU threads (default: all cores)")
     p.add_argument("--no-progress", action="store_true", help="hide the progress bar")
+    return p
+
+
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    p = parser("python -m ti_dk.scene", __doc__, "output directory for <scene>_<method>.h5 and the rest")
+    p.add_argument("--method", help="override the scene's method (" + ", ".join(schema.METHODS) + ")")
+    p.add_argument("--overwrite", action="store_true", help="replace a complete result already in --out")
     p.add_argument("--quick", action="store_true",
                    help="a seconds-long preview: a quarter of the cells per axis, a stable C, files <scene>_quick_*")
     p.add_argument("--no-frames", action="store_true", help="write no PNG frames (2D/3D scenes)")
@@ -67,11 +73,17 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 
 
 def main(argv: list[str] | None = None) -> int:
+    return guarded(lambda: parse_args(argv), _run)
+
+
+def guarded(parse, body) -> int:
+    """``body(parse())`` under the stop signals, its errors as one line and an exit status (module
+    docstring)."""
     with signals.stop_on_signals():  # first: a signal from here on stops the run with one line
         try:
-            args = parse_args(argv)
+            args = parse()
             signals.check_stop()
-            return _run(args)
+            return body(args)
         except schema.ConfigError as exc:
             return _fail(str(exc))
         except signals.Stopped as exc:
@@ -102,27 +114,35 @@ def _run(args: argparse.Namespace) -> int:
 
 def _prepare(args: argparse.Namespace) -> schema.Scene:
     """The scene the command line asks for, its options checked and Taichi started."""
-    overrides = load.command_overrides(args.set, {k: getattr(args, k) for k in load.FLAGS})
-    if args.quick and "cells" in overrides:
-        raise schema.ConfigError("--quick sets the cells (a quarter per axis): drop it or --set cells")
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always", schema.ClampWarning)
-        warnings.simplefilter("always", load.InputWarning)
-        scene = load.load_scene(args.scene, **overrides)
-        if args.quick:
-            scene, note = quick_scene(args.scene, overrides, scene)
+    scene, caught, note = scene_of(args)
     load.check_options(scene, out=args.out, executor=args.executor, workers=args.workers,
                        chunk=args.chunk, threads=args.threads, scheduler=args.scheduler,
                        checkpoint_every=args.checkpoint_every, restart=args.restart, movie=args.movie,
                        frames=not args.no_frames)
-    for message in dict.fromkeys(str(w.message) for w in caught):  # each once (--quick loads twice)
-        print(f"ti_dk: warning: {_short(message)}", file=sys.stderr)
-    if args.quick and note:
+    warn(caught)
+    if note:
         print(f"ti_dk: {note}", file=sys.stderr)
     signals.check_stop()
     runtime.init(args.arch, args.threads)
     signals.check_stop()
     return scene
+
+
+def scene_of(args: argparse.Namespace) -> tuple[schema.Scene, list[str], str]:
+    """The scene the command line names with its overrides (``--set`` and the flags), the
+    warnings its loading gave (for :func:`warn`, once the options are checked too), and the line
+    :func:`quick_scene` says about its C ("" without ``--quick``)."""
+    overrides = load.command_overrides(args.set, {k: getattr(args, k, None) for k in load.FLAGS})
+    quick, note = getattr(args, "quick", False), ""
+    if quick and "cells" in overrides:
+        raise schema.ConfigError("--quick sets the cells (a quarter per axis): drop it or --set cells")
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", schema.ClampWarning)
+        warnings.simplefilter("always", load.InputWarning)
+        scene = load.load_scene(args.scene, **overrides)
+        if quick:
+            scene, note = quick_scene(args.scene, overrides, scene)
+    return scene, [str(w.message) for w in caught], note
 
 
 def quick_scene(scene_arg: str, overrides: dict, scene: schema.Scene) -> tuple[schema.Scene, str]:
@@ -140,6 +160,12 @@ def quick_scene(scene_arg: str, overrides: dict, scene: schema.Scene) -> tuple[s
         note = (f"--quick: C = {quick['C']:g}, half the stability limit {limit:.3g} on {'x'.join(map(str, cells))} "
                 f"cells (the scene's C = {scene.time.C:g} is beyond it)")
     return load.load_scene(scene_arg, **quick), note
+
+
+def warn(messages: list[str]) -> None:
+    """Each warning once, on one line (--quick loads twice)."""
+    for message in dict.fromkeys(messages):
+        print(f"ti_dk: warning: {_short(message)}", file=sys.stderr)
 
 
 LONG_RUN = 60.0  # seconds: runs estimated to take longer say so before they start
