@@ -35,6 +35,12 @@ UNITS = {
     "regrid/removed": "particles removed from cells no longer covered" + SUM,
     "regrid/on_demand": "members regridded off schedule (0: a scheduled regrid of all)",
     "frames/time": "L^2/2D (the time of the frame)",
+    "series/time": "L^2/2D (the time of the record)",
+    "series/mass": "particles, per member",
+    "series/negative_cells": "cells with negative density, per member",
+    "series/particles": "particles in the particle region, per member",
+    "series/region_cells": "cells of the particle region, per member",
+    "observables/time": "L^2/2D (the time of the record)",
     "frames/negative_cells": "cells with negative density in member 0's frame",
 }
 
@@ -45,4 +51,6 @@ def units_of(path: str) -> str | None:
     if name.startswith("compare_"):
         plain = units_of(f"{group}/{name[len('compare_'):]}")
         return plain and f"{plain}; of the compared method"
+    if group == "observables" and name != "time":  # the scene's own names
+        return "particles in the region (cells whose centre satisfies its condition), per member"
     return UNITS.get(f"{group}/{name}")

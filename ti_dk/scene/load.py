@@ -18,7 +18,7 @@ else:  # pragma: no cover - exercised on Python 3.10 only
 
 import numpy as np
 
-from . import initial
+from . import initial, observables
 from .expr import ExprError, Potential, numpy_value
 from ..core.grid import Grid
 from ..hybrid.ghosts import HYBRID_STEP_LIMIT, ID_BITS_MIN
@@ -126,6 +126,8 @@ def make_scene(flat: dict[str, Any]) -> Scene:
         if flat["compare"] != method:  # comparing with itself: nothing
             kw["method"]["compare"] = flat["compare"]
     kw["stats"].update(_stats_keys(flat, kw["time"].get("t_end", TimeKeys.t_end)))
+    if flat.get("observables") is not None:  # [observables]: named regions of this grid
+        kw["stats"]["observables"] = observables.read(flat["observables"], grid.cells, grid.lengths)
     scene = Scene(grid=grid, init=init, **kw.pop(None), **{s: SECTIONS[s](**v) for s, v in kw.items() if s})
     try:
         _check_choices(scene)
@@ -275,8 +277,7 @@ def _check_sizes(scene: Scene) -> None:
     if not (math.isfinite(vol) and vol > 0 and math.isfinite(1 / vol) and scene.dt > 0 and math.isfinite(scene.dt)
             and all(math.isfinite(h * h) and h * h > 0 for h in scene.grid.dx)):
         raise ConfigError(f"lengths = {list(scene.grid.lengths)}, C = {scene.time.C}: the cell size or time step "
-                          "under- or "
-                          "overflows double precision; give lengths and C nearer 1")
+                          "under- or overflows double precision; give lengths and C nearer 1")
     steps = scene.time.t_end / scene.dt
     if steps < 0.5:
         raise ConfigError(f"t_end = {scene.time.t_end:g} is shorter than one time step dt = {scene.dt:.4g}: "
