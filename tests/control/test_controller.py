@@ -52,7 +52,8 @@ def test_unstable_run_stops_with_a_clear_error(tmp_path):
 
 def test_restart_is_bitwise_identical(tmp_path):
     scene = load_scene("ellipse2d", cells=[24, 24], t_end=0.003, regrid_interval=4,
-                       output_times=[0.0, 0.001, 0.002])
+                       output_times=[0.0, 0.001, 0.002], sample_every=3,
+                       observables={"left": "x < 0.5", "ring": "0.1**2 < (x-0.5)**2 + (y-0.5)**2 < 0.3**2"})
     whole = run(scene, out=tmp_path / "whole", snapshots=False)
     run(scene, out=tmp_path / "first", snapshots=False, checkpoint_every=20)
     ckpt = tmp_path / "first" / "ellipse2d_hybrid_checkpoint.h5"
@@ -68,7 +69,12 @@ def test_restart_is_bitwise_identical(tmp_path):
     with h5py.File(whole.path) as a, h5py.File(resumed.path) as b:
         assert np.array_equal(a["stats/mean"][:], b["stats/mean"][:])
         assert np.array_equal(a["frames/compare_negative_cells"][:], b["frames/compare_negative_cells"][:])
+        for k in ("observables/time", "observables/left", "observables/ring", "series/mass", "series/particles",
+                  "series/region_cells", "series/negative_cells"):  # every record, those before the checkpoint too
+            assert a[k].shape[0] == len(range(0, scene.n_steps, 3)) + 1 and np.array_equal(a[k][:], b[k][:]), k
         assert b.attrs["complete"]
+    assert whole.series.keys() == resumed.series.keys()
+    assert all(np.array_equal(whole.series[k], resumed.series[k]) for k in whole.series)
     assert [p.name for p in whole.frames] == [p.name for p in resumed.frames]
     assert min(resumed.timing.values()) >= 0 and resumed.timing["other"] < resumed.timing["total"]
 
