@@ -22,7 +22,9 @@ from .output.files import package_version  # noqa: E402
 from .control.runtime import Result, init  # noqa: E402
 from .control.signals import SimulationError  # noqa: E402
 from .control.controller import run  # noqa: E402
+from .output.series import crossing_rate  # noqa: E402
 
 __version__ = package_version()  # from pyproject.toml, through the installed metadata
 
-__all__ = ["ConfigError", "Result", "Scene", "SimulationError", "available_scenes", "init", "load_scene", "run"]
+__all__ = ["ConfigError", "Result", "Scene", "SimulationError", "available_scenes", "crossing_rate", "init",
+           "load_scene", "run"]

@@ -168,14 +168,20 @@ def numpy_value(t: tuple, x: tuple) -> Any:
     if op == "neg":
         return -numpy_value(t[1], x)
     if op == "not":
-        return np.logical_not(numpy_value(t[1], x))
+        return ~truth(numpy_value(t[1], x))
     with np.errstate(all="ignore"):  # callers check that the result is finite
         if op == "call":
             return _NUMPY[t[1]](numpy_value(t[2], x))
         u, v = numpy_value(t[1], x), numpy_value(t[2], x)
         return {"add": np.add, "sub": np.subtract, "mul": np.multiply, "div": np.divide, "pow": np.power,
                 "lt": np.less, "le": np.less_equal, "gt": np.greater, "ge": np.greater_equal,
-                "and": np.logical_and, "or": np.logical_or}[op](u, v)
+                "and": lambda a, b: truth(a) & truth(b), "or": lambda a, b: truth(a) | truth(b)}[op](u, v)
+
+
+def truth(value: Any) -> np.ndarray:
+    """A condition's value as booleans: true where nonzero and not NaN (0/0 is never true)."""
+    v = np.asarray(value, dtype=np.float64)
+    return (v != 0) & ~np.isnan(v)
 
 
 class TaichiValue:

@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from .expr import VARIABLES, ExprError, axes_used, numpy_value, parse
+from .expr import VARIABLES, ExprError, axes_used, numpy_value, parse, truth
 from .schema import ConfigError
 
 NAME_RE = re.compile(r"[A-Za-z_][A-Za-z0-9_]{0,63}")  # an observable's name: an identifier
@@ -59,8 +59,7 @@ def mask(text: str, cells: tuple[int, ...], lengths: tuple[float, ...]) -> np.nd
     if extra:
         raise ExprError(f"uses {VARIABLES[extra[0]]} but the grid is {dim}D: use {', '.join(VARIABLES[:dim])}")
     centres = np.meshgrid(*((np.arange(n) + 0.5) * L / n for n, L in zip(cells, lengths)), indexing="ij", sparse=True)
-    value = np.asarray(np.broadcast_to(numpy_value(tree, tuple(centres)), cells), dtype=np.float64)
-    return (value != 0) & ~np.isnan(value)  # a NaN (0/0) is no true condition
+    return np.broadcast_to(truth(numpy_value(tree, tuple(centres))), cells).copy()
 
 
 def masks(scene) -> dict[str, np.ndarray]:
