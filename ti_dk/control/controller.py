@@ -232,9 +232,11 @@ class Controller:
         from ..output import series
 
         t0 = time.perf_counter()
-        for png, draw in ((self.series_png, series.draw_series), (self.observables_png, series.draw_observables)):
-            if png:
-                draw(self.outputs.staged(self.outputs.frames) / png.name, self.scene, self.series())
+        staged, records = self.outputs.staged(self.outputs.frames), self.series()
+        if self.series_png:
+            series.draw_series(staged / self.series_png.name, self.scene, records, self.diagnostics.diag)
+        if self.observables_png:
+            series.draw_observables(staged / self.observables_png.name, self.scene, records)
         self.clock.add("render", t0)
 
     def series(self) -> dict[str, np.ndarray]:

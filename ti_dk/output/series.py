@@ -69,13 +69,21 @@ def _save(fig, axes: list, path: Path) -> Path:
     return path
 
 
-def draw_series(path: Path, scene, series: dict[str, np.ndarray]) -> Path:
-    """``series.png``: one panel per series of :data:`PANELS` the run has, mean ± SE over members."""
+def draw_series(path: Path, scene, series: dict[str, np.ndarray], diagnostics: dict | None = None) -> Path:
+    """``series.png``: one panel per series of :data:`PANELS` the run has, mean ± SE over members;
+    with a method run alongside (``scene.method.compare``), its mass and negative cells per member
+    from the per-step ``diagnostics`` (sums over members) beside them."""
     keys = [k for k in PANELS if k in series]
     fig, axes = _figure(len(keys))
+    members = series["mass"].shape[-1]
     for ax, k in zip(axes, keys):
-        _band(ax, series["time"], series[k], "C0", PANELS[k])
+        _band(ax, series["time"], series[k], "C0", scene.method.name)
         ax.set_ylabel(PANELS[k], fontsize=9)
+        other = (diagnostics or {}).get(f"compare_{k}")
+        if other is not None and len(other):
+            ax.plot(diagnostics["time"], np.asarray(other) / members, color="C1", lw=1.0,
+                    label=f"{scene.method.compare} (run alongside, every step)")
+            ax.legend(fontsize=8, loc="best")
     axes[0].set_title(_title(scene, series["mass"].shape[-1]), fontsize=10)
     return _save(fig, axes, path)
 
