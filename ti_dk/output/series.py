@@ -90,16 +90,16 @@ def draw_series(path: Path, scene, series: dict[str, np.ndarray], diagnostics: d
 
 def draw_observables(path: Path, scene, series: dict[str, np.ndarray]) -> Path:
     """``observables.png``: every observable's particle count, mean ± SE over members, on one axis
-    (a log scale when they span more than two decades)."""
+    (a log scale when their positive means span more than two decades; zeros are then left out)."""
     names = [name for name, _ in scene.stats.observables]
     fig, axes = _figure(1)
     ax = axes[0]
     for i, (name, text) in enumerate(scene.stats.observables):
         _band(ax, series["time"], series[name], f"C{i}", f"{name}: {text}")
-    top = max(float(np.max(series[n])) for n in names)
-    low = min(float(np.min(series[n])) for n in names)
-    if low > 0 and top / low > 100:
-        ax.set_yscale("log")
+    means = np.concatenate([mean_se(series[n])[0] for n in names])
+    positive = means[means > 0]
+    if positive.size and positive.max() / positive.min() > 100:  # a well and the leak into the other
+        ax.set_yscale("log", nonpositive="mask")  # a count of 0 is left out
     ax.set_ylabel("particles in the region", fontsize=9)
     ax.set_title(_title(scene, series[names[0]].shape[-1]), fontsize=10)
     ax.legend(fontsize=8, loc="best")
@@ -129,6 +129,8 @@ class Rate:
     members: int
 
     def __str__(self) -> str:
+        if self.members < 2:
+            return f"{self.value:.4g} per L²/2D (one member: no standard error)"
         return f"{self.value:.4g} ± {self.se:.2g} per L²/2D ({self.members} members)"
 
 
