@@ -126,8 +126,7 @@ def make_scene(flat: dict[str, Any]) -> Scene:
         if flat["compare"] != method:  # comparing with itself: nothing
             kw["method"]["compare"] = flat["compare"]
     kw["stats"].update(_stats_keys(flat, kw["time"].get("t_end", TimeKeys.t_end)))
-    if flat.get("observables") is not None:  # [observables]: named regions of this grid
-        kw["stats"]["observables"] = observables.read(flat["observables"], grid.cells, grid.lengths)
+    kw["stats"].update(observables.keys(flat.get("observables"), grid))  # [observables]: regions of this grid
     scene = Scene(grid=grid, init=init, **kw.pop(None), **{s: SECTIONS[s](**v) for s, v in kw.items() if s})
     try:
         _check_choices(scene)

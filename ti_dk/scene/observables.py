@@ -51,6 +51,11 @@ def read(value: Any, cells: tuple[int, ...], lengths: tuple[float, ...]) -> tupl
     return tuple(out)
 
 
+def keys(value: Any, grid) -> dict[str, tuple]:
+    """The ``[stats]`` field ``observables`` of a scene's ``observables`` value (None: absent) on ``grid``."""
+    return {} if value is None else {"observables": read(value, grid.cells, grid.lengths)}
+
+
 def mask(text: str, cells: tuple[int, ...], lengths: tuple[float, ...]) -> np.ndarray:
     """Booleans ``(*cells)``: the cells whose centre satisfies condition ``text``."""
     tree = parse(text, logic=True)
