@@ -229,12 +229,13 @@ class Controller:
 
     def draw_series(self) -> None:
         """The run's series and its observables over time, mean ± SE over members (:mod:`ti_dk.output.series`)."""
+        if not self.series_png:  # no output, or no frames
+            return
         from ..output import series
 
         t0 = time.perf_counter()
         staged, records = self.outputs.staged(self.outputs.frames), self.series()
-        if self.series_png:
-            series.draw_series(staged / self.series_png.name, self.scene, records, self.diagnostics.diag)
+        series.draw_series(staged / self.series_png.name, self.scene, records, self.diagnostics.diag)
         if self.observables_png:
             series.draw_observables(staged / self.observables_png.name, self.scene, records)
         self.clock.add("render", t0)
