@@ -48,9 +48,9 @@ UNITS = {
 def units_of(path: str) -> str | None:
     """The ``units`` attribute of the dataset at ``path`` (``group/name``); None for one not listed."""
     group, name = path.strip("/").split("/", 1)
+    if group == "observables" and name != "time":  # the scene's own names
+        return "particles in the region (cells whose centre satisfies its condition), per member"
     if name.startswith("compare_"):
         plain = units_of(f"{group}/{name[len('compare_'):]}")
         return plain and f"{plain}; of the compared method"
-    if group == "observables" and name != "time":  # the scene's own names
-        return "particles in the region (cells whose centre satisfies its condition), per member"
     return UNITS.get(f"{group}/{name}")
