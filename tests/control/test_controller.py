@@ -261,7 +261,7 @@ def test_summary_names_every_file_every_method_and_the_time_in_step_order(tmp_pa
 def test_summary_of_a_fixed_region_ensemble_speaks_per_member(tmp_path):
     from ti_dk.control.controller import summary
 
-    res = run(load_scene("void1d", method="hybrid", ensemble=8, cells=[40], t_end=0.0005,
+    res = run(load_scene("void1d", method="hybrid", ensemble=8, cells=[40], t_end=0.0005, output_times=[],
                          observables={"void": "0.3 < x < 0.7"}), out=tmp_path, progress=False)
     text = summary(res)
     assert "8 members" in text and "particles per member" in text and "(all members)" in text

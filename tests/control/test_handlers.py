@@ -56,11 +56,11 @@ def test_handlers_that_are_off_are_never_due():
 
 
 def test_observations_are_due_at_step_0_every_sample_every_steps_and_the_last():
-    scene = load_scene("void1d", t_end=0.001, sample_every=3, observables={"left": "x < 0.5"})
+    scene = load_scene("void1d", t_end=0.001, sample_every=3, output_times=[], observables={"left": "x < 0.5"})
     obs = Observations(scene, Flat(scene), None, {})
     assert scene.n_steps % 3 and [n for n in range(scene.n_steps + 1) if obs.due(n)] == [
         *range(0, scene.n_steps, 3), scene.n_steps]
-    plain = load_scene("void1d", t_end=0.1)  # no observables: about SERIES_POINTS records of the run's own series
+    plain = load_scene("void1d", t_end=0.1, output_times=[])  # no observables: about SERIES_POINTS records of the run's own series
     assert plain.observe_every == plain.n_steps // 200 > 1
 
 
