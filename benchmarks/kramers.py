@@ -21,6 +21,7 @@ import time
 import numpy as np
 
 import ti_dk
+from ti_dk.output.series import two_state_rate
 
 GAMMA, D = 5e-4, 0.5  # the scene's V = [(x−0.3)²(x−0.7)² + (y−½)⁴]/γ, U = 2V; D = ½ in the code's units
 BLOB = "exp(-((x-0.3)**2*(x-0.7)**2 + (y-0.5)**4)/5e-4)*step(x-0.2)*step(0.4-x)*step(y-0.25)*step(0.75-y)"
@@ -117,7 +118,7 @@ def main() -> None:
         right, total, _, wall = out[m]
         f = right / total
         s = mean_se(slopes(t, f, args.fit_from))
-        k2 = mean_se(slopes(t, -np.log(1 - 2 * f) / 2, args.fit_from))
+        k2 = mean_se(two_state_rate(t, f, args.fit_from))
         rates[m] = k2
         print(f"| {m} | {s[0]:.4f} ± {s[1]:.4f} | {k2[0]:.4f} ± {k2[1]:.4f} | {k2[0] / rate:.2f} | {wall:.1f} | "
               f"{wall / args.members:.1f} |")

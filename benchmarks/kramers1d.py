@@ -25,10 +25,10 @@ import math
 import time
 
 import numpy as np
-import scipy.sparse as sp
-from scipy.special import ndtr
 
 import ti_dk
+from ti_dk.core import theory
+from ti_dk.output.series import two_state_rate
 from ti_dk.methods.registry import make_solver
 
 FORMULA = "2*(x-0.3)**2*(x-0.7)**2/5e-4"
@@ -52,25 +52,13 @@ def start(cells: int) -> np.ndarray:
 
 def fit_rate(t: np.ndarray, f: np.ndarray, t_from: float = 0.01) -> np.ndarray:
     """Slope of −ln(1 − 2f)/2 against t on t ≥ t_from (last axis of f: time)."""
-    keep = t >= t_from - 1e-12
-    return np.polyfit(t[keep], (-np.log(1 - 2 * f[..., keep]) / 2).T, 1)[0]
+    return two_state_rate(t, f, t_from)
 
 
 def walk_mean(cells: int, dt: float, times: np.ndarray, sub: int = 256) -> np.ndarray:
-    """f(t) of the particle method: the fine-bin transition matrix of the Euler–Maruyama step."""
-    M = cells * sub
-    d = 1.0 / M
-    xs = (np.arange(M) + 0.5) * d
-    mu = xs - 0.5 * u_prime(xs) * dt
-    rows, cols, vals = [], [], []
-    for k in range(-sub - 1, sub + 2):
-        j = np.arange(M) + k
-        ok = (j >= 0) & (j < M)  # beyond a wall: absorbed (Dirichlet)
-        p = ndtr((xs + (k + 0.5) * d - mu) / math.sqrt(dt)) - ndtr((xs + (k - 0.5) * d - mu) / math.sqrt(dt))
-        rows.append(j[ok]), cols.append(np.arange(M)[ok]), vals.append(p[ok])
-    T = sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(M, M))
-    p = np.repeat(start(cells), sub) / sub
-    return _sample(lambda q: T @ q, p, xs > 0.5, dt, times)
+    """f(t) of the particle method: the fine-bin transition matrix of the Euler–Maruyama step
+    (:func:`ti_dk.core.theory.walk_crossing_fraction`)."""
+    return theory.walk_crossing_fraction(u_prime, start(cells), dt, times, sub=sub)
 
 
 def fv_mean(cells: int, dt: float, times: np.ndarray) -> np.ndarray:

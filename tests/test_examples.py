@@ -23,7 +23,7 @@ def _run(name, tmp_path, *args):
 
 
 def test_there_are_examples_and_each_has_a_small_size():
-    assert {"ensemble_moments.py", "own_scene.py", "read_output.py"} <= set(EXAMPLES)
+    assert {"crossing_rate.py", "ensemble_moments.py", "own_scene.py", "read_output.py"} <= set(EXAMPLES)
     for name in EXAMPLES:
         assert "--small" in (ROOT / "examples" / name).read_text(), name
 
@@ -55,6 +55,13 @@ def test_own_scene_loads_the_written_toml_and_runs_the_hybrid(tmp_path):
     out = _run("own_scene.py", tmp_path / "runs")  # without --out: no path printed, nothing written
     assert "wrote:" not in out and "nothing written" in out and sorted(p.name for p in (tmp_path / "runs").iterdir()) \
         == sorted(p.name for p in map(Path, written))
+
+
+def test_crossing_rate_gives_the_double_wells_rate_with_its_error_against_the_exact_one(tmp_path):
+    out = _run("crossing_rate.py", tmp_path)
+    rate, se = map(float, re.search(r"crossing rate left -> right: ([\d.]+) ± ([\d.]+) per", out).groups())
+    exact = float(re.search(r"exact \(the 1D walk of the particles\): ([\d.]+);", out).group(1))
+    assert exact == pytest.approx(0.1125, abs=5e-4) and 0 < se < 0.08 * exact and abs(rate - exact) < 4 * se
 
 
 def test_read_output_reads_the_run_file_and_the_openpmd_snapshot(tmp_path):

@@ -24,7 +24,9 @@ from .control.runtime import Result, init  # noqa: E402
 from .control.signals import SimulationError  # noqa: E402
 from .control.controller import run  # noqa: E402
 from .control.tradeoff import tradeoff  # noqa: E402  (python -m ti_dk.tradeoff is the module ti_dk/tradeoff.py)
+from .output.series import crossing_rate  # noqa: E402
 
 __version__ = package_version()  # from pyproject.toml, through the installed metadata
 
-__all__ = ["ConfigError", "Result", "Scene", "SimulationError", "available_scenes", "init", "load_scene", "run", "tradeoff"]
+__all__ = ["ConfigError", "Result", "Scene", "SimulationError", "available_scenes", "crossing_rate", "init",
+           "load_scene", "run", "tradeoff"]

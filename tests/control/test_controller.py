@@ -55,7 +55,8 @@ def test_unstable_run_stops_with_a_clear_error(tmp_path):
 
 def test_restart_is_bitwise_identical(tmp_path):
     scene = load_scene("ellipse2d", cells=[24, 24], t_end=0.003, regrid_interval=4,
-                       output_times=[0.0, 0.001, 0.002])
+                       output_times=[0.0, 0.001, 0.002], sample_every=3,
+                       observables={"left": "x < 0.5", "ring": "0.1**2 < (x-0.5)**2 + (y-0.5)**2 < 0.3**2"})
     whole = run(scene, out=tmp_path / "whole", snapshots=False)
     run(scene, out=tmp_path / "first", snapshots=False, checkpoint_every=20)
     ckpt = tmp_path / "first" / "ellipse2d_hybrid_checkpoint.h5"
@@ -71,7 +72,12 @@ def test_restart_is_bitwise_identical(tmp_path):
     with h5py.File(whole.path) as a, h5py.File(resumed.path) as b:
         assert np.array_equal(a["stats/mean"][:], b["stats/mean"][:])
         assert np.array_equal(a["frames/compare_negative_cells"][:], b["frames/compare_negative_cells"][:])
+        for k in ("observables/time", "observables/left", "observables/ring", "series/mass", "series/particles",
+                  "series/region_cells", "series/negative_cells"):  # every record, those before the checkpoint too
+            assert a[k].shape[0] == len(range(0, scene.n_steps, 3)) + 1 and np.array_equal(a[k][:], b[k][:]), k
         assert b.attrs["complete"]
+    assert whole.series.keys() == resumed.series.keys()
+    assert all(np.array_equal(whole.series[k], resumed.series[k]) for k in whole.series)
     assert [p.name for p in whole.frames] == [p.name for p in resumed.frames]
     assert min(resumed.timing.values()) >= 0 and resumed.timing["other"] < resumed.timing["total"]
 
@@ -239,7 +245,8 @@ def test_summary_names_every_file_every_method_and_the_time_in_step_order(tmp_pa
     scene = load_scene("ellipse2d", cells=[16, 16], t_end=0.001, output_times=[0.0, 0.001])
     res = run(scene, out=tmp_path, movie=True, checkpoint_every=2, progress=False)
     text = summary(res)
-    assert set(res.written) == {"statistics and diagnostics", "frames", "openPMD snapshots", "checkpoint", "movie"}
+    assert set(res.written) == {"statistics and diagnostics", "frames", "openPMD snapshots", "checkpoint", "movie",
+                                "time series"}
     for path in res.written.values():
         assert path.exists() and str(path) in text
     neg = res.diagnostics["compare_negative_cells"]
@@ -257,12 +264,17 @@ def test_summary_names_every_file_every_method_and_the_time_in_step_order(tmp_pa
 def test_summary_of_a_fixed_region_ensemble_speaks_per_member(tmp_path):
     from ti_dk.control.controller import summary
 
-    res = run(load_scene("void1d", method="hybrid", ensemble=8, cells=[40], t_end=0.0005), out=tmp_path,
-              progress=False)
+    res = run(load_scene("void1d", method="hybrid", ensemble=8, cells=[40], t_end=0.0005, output_times=[],
+                         observables={"void": "0.3 < x < 0.7"}), out=tmp_path, progress=False)
     text = summary(res)
     assert "8 members" in text and "particles per member" in text and "(all members)" in text
     assert "fixed at the start: 22 cells per member" in text and "regrids" not in text
     assert str(tmp_path / "void1d_hybrid_frames") in text
+    void = res.series["void"][-1]  # the void's particles in each member at the end
+    assert void.mean() > 0 and f"void {void.mean():,.6g} ± {void.std(ddof=1) / np.sqrt(8):,.2g}" in text
+    assert f"observables at t = {res.series['time'][-1]:.4g} (particles, mean ± SE over 8 members)" in text
+    for what in ("time series", "observables"):
+        assert f"{res.written[what]}  ({what})" in text and res.written[what].stat().st_size > 0
 
 
 # -- seeds: the whole unsigned 64-bit range works; seeds below 2**31 keep their streams ----------

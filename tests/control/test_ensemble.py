@@ -4,6 +4,7 @@ import signal
 import threading
 import time
 
+import h5py
 import numpy as np
 import pytest
 from distributed import Client, LocalCluster
@@ -11,7 +12,7 @@ from distributed import Client, LocalCluster
 from ti_dk import load_scene, run
 from ti_dk.control import ensemble
 
-SCENE = dict(ensemble=40, t_end=0.002, output_times=[0.001, 0.002])
+SCENE = dict(ensemble=40, t_end=0.002, output_times=[0.001, 0.002], observables={"left": "x < 0.5"})
 
 
 def _same(a, b):
@@ -20,6 +21,7 @@ def _same(a, b):
         np.testing.assert_allclose(getattr(a.stats, k), getattr(b.stats, k), rtol=1e-11, atol=1e-9)
     assert np.array_equal(a.stats.n_samples, b.stats.n_samples)
     np.testing.assert_allclose(a.diagnostics["mass"], b.diagnostics["mass"], rtol=1e-12)
+    assert a.series.keys() == b.series.keys() and all(np.array_equal(a.series[k], b.series[k]) for k in a.series)
 
 
 def test_chunks_cover_every_member_once():
@@ -34,6 +36,8 @@ def test_dask_chunks_equal_the_single_process_run_and_resume(tmp_path, method):
     split = ensemble.run(scene, "dask", out=tmp_path, chunk=7, workers=2, progress=False)
     assert split.chunks["chunks"] == 6
     _same(whole, split)
+    with h5py.File(split.path) as f:  # the members' records side by side, as one process writes them
+        assert np.array_equal(f["observables/left"][()], whole.series["left"])
     # a stopped run resumes with the chunks it lacks
     files = sorted((tmp_path / f"void1d_{method}_chunks").glob("chunk_*.h5"))
     assert len(files) == 6

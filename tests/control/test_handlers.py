@@ -5,7 +5,8 @@ import numpy as np
 
 from ti_dk import load_scene
 from ti_dk.control.checkpoint import Progress
-from ti_dk.control.handlers import TIMING_ORDER, Checkpoints, Clock, Diagnostics, Frames, Snapshots, Statistics
+from ti_dk.control.handlers import (TIMING_ORDER, Checkpoints, Clock, Diagnostics, Frames, Observations, Snapshots,
+                                    Statistics)
 from ti_dk.methods.solver import Solver
 
 
@@ -52,6 +53,15 @@ def test_handlers_that_are_off_are_never_due():
     off = [Frames(scene, solver, None, None, {0}, {"time": []}, stats), Snapshots(scene, solver, None), diag,
            Checkpoints(scene, (solver, None), None, 1, lambda n: Progress(step=n), diag)]
     assert not any(h.due(n) for h in off for n in range(scene.n_steps + 1))
+
+
+def test_observations_are_due_at_step_0_every_sample_every_steps_and_the_last():
+    scene = load_scene("void1d", t_end=0.001, sample_every=3, output_times=[], observables={"left": "x < 0.5"})
+    obs = Observations(scene, Flat(scene), None, {})
+    assert scene.n_steps % 3 and [n for n in range(scene.n_steps + 1) if obs.due(n)] == [
+        *range(0, scene.n_steps, 3), scene.n_steps]
+    plain = load_scene("void1d", t_end=0.1, output_times=[])  # no observables: about SERIES_POINTS records of the run's own series
+    assert plain.observe_every == plain.n_steps // 200 > 1
 
 
 def test_checkpoints_fall_between_the_first_and_the_last_step():

@@ -7,7 +7,7 @@ import pytest
 import taichi as ti
 
 from ti_dk import ConfigError, load_scene
-from ti_dk.scene.expr import ExprError, Potential, derivative, numpy_value, parse, taichi_value
+from ti_dk.scene.expr import ExprError, Potential, derivative, numpy_value, parse, taichi_value, truth
 
 FORMULAS = {  # text: the same function written in Python
     "0.5*((x-0.5)/0.08)**2": lambda x, y, z: 0.5 * ((x - 0.5) / 0.08) ** 2,
@@ -49,6 +49,16 @@ def test_derivative_of_the_trap_is_exact():
 def test_only_the_whitelist_parses(text):
     with pytest.raises(ExprError):
         parse(text)
+
+
+def test_conditions_parse_only_as_conditions_and_are_their_truth_values():
+    with pytest.raises(ExprError, match="'x < 0.5' is not allowed"):
+        parse("x < 0.5")  # a potential or a density takes no comparison
+    x, y = np.meshgrid(np.linspace(0, 1, 11), np.linspace(0, 1, 11))
+    t = parse("0.2 < x <= 0.4 or not y > 0.5 and step(x - 0.5) * 2", logic=True)
+    assert np.array_equal(truth(numpy_value(t, (x, y))), ((0.2 < x) & (x <= 0.4)) | (~(y > 0.5) & (x >= 0.5)))
+    with pytest.raises(ExprError, match="< <= > >= and or not"):
+        parse("x == 0.5", logic=True)
 
 
 def test_a_formula_for_another_dimension_says_which_variables_fit():

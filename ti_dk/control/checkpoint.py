@@ -27,6 +27,7 @@ class Progress:
     times: list = field(default_factory=list)  # their times
     diag: dict = field(default_factory=lambda: {"time": []})  # per step: every key the solvers report
     frames: dict = field(default_factory=lambda: {"time": [], "negative_cells": []})  # per frame
+    series: dict = field(default_factory=dict)  # per record: time and per-member series (handlers.Observations)
     pooled: dict | None = None  # stationary runs: the pooled accumulator's state
     timing: dict = field(default_factory=dict)  # seconds per part of the run
     wall: float = 0.0  # seconds the run had taken when the checkpoint was written
@@ -50,6 +51,7 @@ def write_checkpoint(path: Path, scene: Scene, solver: Solver, other: Solver | N
         write_rows(f, prog.rows)
         write_group(f, "diag", prog.diag)
         write_group(f, "frames", prog.frames)
+        write_group(f, "series", prog.series)
         write_group(f, "pooled", prog.pooled or {})
         f.attrs["digest"] = content_digest(f)
 
@@ -136,6 +138,7 @@ def read_checkpoint(path: Path, scene: Scene, solver: Solver, other: Solver | No
             prog = Progress(step=int(f.attrs["step"]), times=list(f["times"][()]), timing=timing, rows=read_rows(f),
                              diag={k: list(v) for k, v in read_group(f["diag"]).items()},
                              frames={k: list(v) for k, v in read_group(f["frames"]).items()},
+                             series={k: list(v) for k, v in read_group(f["series"]).items()} if "series" in f else {},
                              pooled=read_group(f["pooled"]) or None if "pooled" in f else None,
                              wall=float(f.attrs.get("wall", 0.0)))
         except (KeyError, ValueError, TypeError, OSError) as exc:
@@ -173,6 +176,10 @@ def checkpoint_problem(scene: Scene, prog: Progress, states: dict, solvers: dict
     if any(len(v) != step for v in prog.diag.values()) or not math.isclose(prog.diag["time"][-1], step * scene.dt,
                                                                            rel_tol=1e-9):
         return f"its per-step diagnostics do not end at step {step}"
+    records = step // scene.observe_every + 1  # handlers.Observations: step 0 and every observe_every-th
+    if any(len(v) != records for v in prog.series.values()) or not {"time", "mass", *(
+            name for name, _ in scene.stats.observables)} <= set(prog.series):
+        return f"its per-member series do not hold the {records} records of step {step}"
     rows = 0 if scene.stats.t_equil is not None else sum(1 for s in scene.output_steps if s <= step)
     if len(prog.rows) != rows or len(prog.times) != rows:
         return f"it holds {len(prog.rows)} statistics rows where step {step} has {rows}"

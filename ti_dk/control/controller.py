@@ -17,9 +17,10 @@ from ..scene.estimates import work_estimate
 from ..scene.checks import check_initial
 from ..scene.load import check_options, scene_of
 from ..scene.schema import Scene
-from .handlers import Checkpoints, Clock, Diagnostics, Frames, Snapshots, Statistics
+from .handlers import Checkpoints, Clock, Diagnostics, Frames, Observations, Snapshots, Statistics
 from ..output.claim import Outputs
 from ..output.files import RunFile, is_complete, output_error
+from ..output.series import summary_lines
 from ..methods.registry import make_solver  # also where tests and benchmarks build a solver
 from .runtime import Result, init, initialized, started_here, stats_of
 from .signals import SimulationError, check_stop
@@ -125,6 +126,7 @@ def _run(scene: Scene, outputs: Outputs | None, opts: RunOptions) -> Result:
         if opts.movie:
             ctl.make_movie()
         ctl.draw_structure_factor()
+        ctl.draw_series()
     except OverflowError as exc:
         if ctl.rf:
             ctl.rf.close(ctl.wall(), error=str(exc))
@@ -165,7 +167,11 @@ class Controller:
         sampled = scene.method.ensemble > 1 or scene.stats.t_equil is not None  # rows with a variance
         # where the last row's S(k) is drawn at the end, or None
         self.spectrum_png = outputs.structure_factor if frames and scene.stats.structure_factor and sampled else None
-        self.diagnostics = Diagnostics(self.rf, prog.diag, self.statistics)
+        self.observations = Observations(scene, solver, self.rf, prog.series)
+        self.diagnostics = Diagnostics(self.rf, prog.diag, self.statistics, self.observations)
+        # the series drawn at the end (output/series.py), or None
+        self.series_png = outputs.series if frames else None
+        self.observables_png = outputs.observables if frames and scene.stats.observables else None
         writer = _frame_writer(outputs, scene, other) if frames else None
         self.frames = Frames(scene, solver, other, writer, steps, prog.frames, self.statistics)
         draw_snapshots = outputs is not None and scene.grid.dim >= 2 and opts.snapshots is not False
@@ -173,7 +179,8 @@ class Controller:
         every = opts.checkpoint_every
         self.checkpoints = Checkpoints(scene, (solver, other), outputs.checkpoint if outputs and every else None,
                                        every, self.progress, self.diagnostics, opts.restart)
-        self.handlers = (self.statistics, self.frames, self.snapshots, self.diagnostics, self.checkpoints)
+        self.handlers = (self.statistics, self.frames, self.snapshots, self.observations, self.diagnostics,
+                         self.checkpoints)
         self.watch = (Runaway(scene, ppc, scene.method.name), Runaway(scene, ppc, scene.method.compare))
         self.blown = False  # whether a step blew up (and the run went on)
         self.written = self._written()  # every file or folder written, by what it holds
@@ -186,7 +193,8 @@ class Controller:
         where = {"statistics and diagnostics": self.rf and self.rf.path,
                  "frames": self.frames.writer and o.frames,
                  "openPMD snapshots": self.snapshots.directory and o.snapshots, "checkpoint": self.checkpoints.path,
-                 "structure factor": self.spectrum_png}
+                 "structure factor": self.spectrum_png, "time series": self.series_png,
+                 "observables": self.observables_png}
         return {what: path for what, path in where.items() if path}
 
     def wall(self) -> float:
@@ -237,7 +245,8 @@ class Controller:
         """What the run has produced by step ``n`` (a checkpoint's content, with the solver states)."""
         st = self.statistics
         return Progress(step=n, rows=st.rows, times=st.times, diag=self.diagnostics.diag, frames=self.frames.log,
-                        pooled=st.pooled_state(), timing=self.clock.parts, wall=self.wall())
+                        series=self.observations.series, pooled=st.pooled_state(), timing=self.clock.parts,
+                        wall=self.wall())
 
     def make_movie(self) -> None:
         """The MP4 of every frame."""
@@ -259,6 +268,23 @@ class Controller:
             draw_structure_factor(staged, self.scene, st.rows[-1], st.row_steps(self.scene.n_steps))
             self.clock.add("render", t0)
 
+    def draw_series(self) -> None:
+        """The run's series and its observables over time, mean ± SE over members (:mod:`ti_dk.output.series`)."""
+        if not self.series_png:  # no output, or no frames
+            return
+        from ..output import series
+
+        t0 = time.perf_counter()
+        staged, records = self.outputs.staged(self.outputs.frames), self.series()
+        series.draw_series(staged / self.series_png.name, self.scene, records, self.diagnostics.diag)
+        if self.observables_png:
+            series.draw_observables(staged / self.observables_png.name, self.scene, records)
+        self.clock.add("render", t0)
+
+    def series(self) -> dict[str, np.ndarray]:
+        """The per-member records so far, as arrays (``Result.series``)."""
+        return {k: np.asarray(v) for k, v in self.observations.series.items()}
+
     def finish(self, wall: float) -> Result:
         """Close the run file (marked complete) and return the result."""
         timing = self.clock.result(wall)
@@ -274,7 +300,7 @@ class Controller:
                       stats=stats_of(st.rows, sc.stats.histogram),
                       diagnostics={k: np.asarray(v) for k, v in self.diagnostics.diag.items()},
                       final_density=self.solver.density(), wall_time=wall, path=self.rf.path if self.rf else None,
-                      regrids=regrids, timing=timing, rows=st.rows, written=self.written,
+                      regrids=regrids, timing=timing, rows=st.rows, written=self.written, series=self.series(),
                       frames=[self.outputs.frames / p.name for p in self.frames.files()], samples=st.samples)
 
 
@@ -413,6 +439,7 @@ def summary(result: Result) -> str:
     lines.append(f"  {sc.method.name}: " + "; ".join(main))
     if sc.method.compare and "compare_negative_cells" in d:
         lines.append(f"  {sc.method.compare} (run alongside): {negative('compare_')}")
+    lines += [f"  {line}" for line in summary_lines(sc, result.series)]
     names = {"compile": "compile (first step)", "solver": sc.method.name}
     parts = [f"{names.get(k, k)} {v:.2f} s" for k, v in result.timing.items() if k != "total"]
     if parts:

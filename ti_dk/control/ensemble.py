@@ -49,7 +49,7 @@ def run_chunk(scene: Scene, member0: int, threads: int | None = None) -> dict:
         runtime.init("cpu", threads)  # unguarded ti_dk.init in a script Dask re-imports): start it here
     res = controller.run(scene, progress=False, member0=member0)
     return {"member0": member0, "times": res.times, "rows": res.rows, "diagnostics": res.diagnostics,
-            "final_density": res.final_density, "wall_time": res.wall_time}
+            "series": res.series, "final_density": res.final_density, "wall_time": res.wall_time}
 
 
 def run(scene: Scene, executor: str = "local", out: str | Path | None = None, progress: bool | None = None,
@@ -153,18 +153,21 @@ def _merge(scene: Scene, parts: list[dict], outputs: Outputs | None, wall: float
         v = np.stack([p["diagnostics"][k] for p in parts])
         diag[k] = v[0] if k == "time" else v.min(axis=0) if k == "min_density" else v.sum(axis=0)
     times = parts[0]["times"]
+    series = {k: v if k == "time" else np.concatenate([p["series"][k] for p in parts], axis=1)  # members side by side
+              for k, v in parts[0]["series"].items()}
     path = None
     if outputs is not None:  # the run file as a single-process run writes it
         rf = RunFile.of(outputs, scene)
         rf.write_rows(times, rows)
         rf.write_diagnostics({k: list(v) for k, v in diag.items()})
+        rf.write_series(series, tuple(name for name, _ in scene.stats.observables))
         rf.annotate("chunks", info)
         rf.close(wall)
         path = rf.path
     return runtime.Result(scene=scene, times=times, cell_volume=scene.grid.cell_volume,
                           stats=runtime.stats_of(rows, hist), diagnostics=diag,
                           final_density=np.concatenate([p["final_density"] for p in parts]),
-                          wall_time=wall, path=path, timing={"total": wall}, rows=rows, chunks=info)
+                          wall_time=wall, path=path, timing={"total": wall}, rows=rows, series=series, chunks=info)
 
 
 def _save_chunk(outputs: Outputs, scene: Scene, r: dict) -> None:
@@ -175,6 +178,7 @@ def _save_chunk(outputs: Outputs, scene: Scene, r: dict) -> None:
         f["times"], f["final_density"] = r["times"], r["final_density"]
         write_rows(f, r["rows"])
         write_group(f, "diagnostics", r["diagnostics"])
+        write_group(f, "series", r["series"])
 
 
 def _load_chunks(outputs: Outputs, scene: Scene) -> dict[int, dict]:
@@ -188,7 +192,8 @@ def _load_chunks(outputs: Outputs, scene: Scene) -> dict[int, dict]:
                 done[int(f.attrs["member0"])] = {
                     "member0": int(f.attrs["member0"]), "times": f["times"][()],
                     "final_density": f["final_density"][()], "rows": read_rows(f),
-                    "diagnostics": read_group(f["diagnostics"]), "wall_time": float(f.attrs["wall_time"])}
+                    "diagnostics": read_group(f["diagnostics"]), "series": read_group(f["series"]),
+                    "wall_time": float(f.attrs["wall_time"])}
         except (OSError, KeyError) as exc:
             print(f"ti_dk: warning: {path} is unreadable ({str(exc).splitlines()[0]}); running that chunk again",
                   file=sys.stderr)

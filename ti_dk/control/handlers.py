@@ -2,7 +2,8 @@
 that step, ``write(step)`` writes, and ``part`` names the part of the run its time counts to.
 
 The run controller (:class:`ti_dk.control.controller.Controller`) asks them in order after every step:
-:class:`Statistics`, :class:`Frames`, :class:`Snapshots`, :class:`Diagnostics`, :class:`Checkpoints`.
+:class:`Statistics`, :class:`Frames`, :class:`Snapshots`, :class:`Observations`, :class:`Diagnostics`,
+:class:`Checkpoints`.
 """
 from __future__ import annotations
 
@@ -13,6 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from .checkpoint import Progress, write_checkpoint
+from ..scene import observables
 from ..scene.schema import Scene
 from ..output.files import RunFile, frame_file, pack_ids, write_openpmd
 from ..methods.solver import Solver
@@ -142,15 +144,55 @@ class Statistics:
         return self.pooled.state() if self.stationary else None
 
 
+class Observations:
+    """Per member, every ``scene.observe_every`` steps, step 0 and the last: its mass and negative
+    cells, for a solver with a particle region the particles in it and its cells, and the particle
+    count of each region of ``[observables]`` (:mod:`ti_dk.scene.observables`), from one copy of
+    the densities. ``series``: name → one entry per record (restored from a checkpoint or empty);
+    written to the run file by :meth:`flush` (``/series``, ``/observables``)."""
+
+    part = "statistics"
+
+    def __init__(self, scene: Scene, solver: Solver, rf: RunFile | None, series: dict):
+        self.scene, self.solver, self.rf = scene, solver, rf
+        self.series = series  # "time" and each series' per-member values, per record
+        self.masks = observables.masks(scene)  # each observable's cells
+        self.done = 0  # records in the file
+
+    def due(self, n: int) -> bool:
+        return n % self.scene.observe_every == 0 or n == self.scene.n_steps
+
+    def write(self, n: int) -> None:
+        q = self.solver.density() * self.scene.grid.cell_volume  # particles per cell, (members, *cells)
+        axes = tuple(range(1, q.ndim))
+        record = {"time": n * self.scene.dt, "mass": q.sum(axis=axes), "negative_cells": (q < 0).sum(axis=axes)}
+        region = self.solver.region()
+        if region is not None:
+            record |= {"particles": np.where(region, q, 0.0).sum(axis=axes), "region_cells": region.sum(axis=axes)}
+        record |= {name: q[:, m].sum(axis=1) for name, m in self.masks.items()}
+        for k, v in record.items():
+            self.series.setdefault(k, []).append(v)
+
+    def flush(self) -> None:
+        """Write the records not yet in the run file."""
+        n = len(self.series.get("time", ()))
+        if self.rf is not None and n > self.done:
+            self.rf.write_series({k: v[self.done:] for k, v in self.series.items()}, tuple(self.masks))
+            self.done = n
+
+
 class Diagnostics:
-    """Per-step diagnostics on their way to the run file: written with every statistics row, at
-    every checkpoint and at least every ``FLUSH_SECONDS``, so a killed run keeps them up to then."""
+    """Per-step diagnostics on their way to the run file (and the :class:`Observations` records):
+    written with every statistics row, at every checkpoint and at least every ``FLUSH_SECONDS``,
+    so a killed run keeps them up to then."""
 
     part = "io"
 
-    def __init__(self, rf: RunFile | None, diag: dict, statistics: Statistics):
+    def __init__(self, rf: RunFile | None, diag: dict, statistics: Statistics,
+                 observations: Observations | None = None):
         self.rf, self.diag = rf, diag  # diag: per step, every key the solvers report (restored or empty)
         self.statistics = statistics  # whose rows force a flush
+        self.observations = observations  # whose records are flushed with the diagnostics
         self.done, self.last = 0, time.monotonic()  # steps in the file; when they were written
         self.flush(force=True)
 
@@ -172,6 +214,8 @@ class Diagnostics:
         n = len(self.diag["time"])
         if n > self.done:
             self.rf.write_diagnostics({k: v[self.done:] for k, v in self.diag.items()})
+        if self.observations is not None:
+            self.observations.flush()
         self.done, self.last = n, time.monotonic()
 
 

@@ -183,6 +183,10 @@ class Result:
         Every file or folder written, by what it holds.
     rows : list of dict
         The statistics rows with their moment accumulators (to merge ensembles exactly).
+    series : dict of str to numpy.ndarray
+        Per member, every ``scene.observe_every`` steps (step 0 and the last too): ``time``
+        ``(records,)``; ``mass``, ``negative_cells`` (the hybrid: ``particles``, ``region_cells``)
+        and each ``[observables]`` region's particle count, ``(records, members)``.
     chunks : dict
         Distributed runs: the chunk count and the chunks that were retried.
     path : pathlib.Path or None
@@ -204,6 +208,7 @@ class Result:
     frames: list[Path] = field(default_factory=list)  # PNG frames written
     written: dict[str, Path] = field(default_factory=dict)  # every file or folder written, by what it holds
     rows: list[dict] = field(default_factory=list, repr=False)  # statistics rows with their accumulators
+    series: dict[str, np.ndarray] = field(default_factory=dict, repr=False)  # per member, over time
     chunks: dict = field(default_factory=dict)  # distributed runs: chunk count and the retried chunks
     path: Path | None = None  # the run file, if one was written
     samples: list[np.ndarray] | None = field(default=None, repr=False)  # run(samples=True): each row's densities

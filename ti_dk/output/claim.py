@@ -61,6 +61,8 @@ class Outputs:
     lock = property(lambda self: self.out / f"{self.stem}.lock")
     movie = property(lambda self: self.out / f"{self.stem}.mp4")
     structure_factor = property(lambda self: self.frames / "structure_factor.png")  # S(k) drawn, beside the frames
+    series = property(lambda self: self.frames / "series.png")  # the run's series over time (output/series.py)
+    observables = property(lambda self: self.frames / "observables.png")  # its [observables] over time
     stage = property(lambda self: self.out / f".{self.stem}.partial")
 
     @property

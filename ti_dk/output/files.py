@@ -112,7 +112,10 @@ class RunFile:
     boundary_inflow,clamped_steps}`` one entry per step (hybrid: also ``particles`` and
     ``regrid_change``; a compared method: ``compare_{mass,min_density,negative_cells}``);
     ``/regrid/{step,boxes,covered_cells,efficiency,created,removed,on_demand}`` one entry per
-    regrid of a hybrid run; ``/frames/{time,negative_cells}`` one entry per frame.
+    regrid of a hybrid run; ``/frames/{time,negative_cells}`` one entry per frame;
+    ``/series/{time,mass,negative_cells}`` (a region solver: also ``particles``, ``region_cells``)
+    and ``/observables/{time,<name>}`` (the scene's ``[observables]``) per member, shaped
+    ``(records, members)``, one record every ``scene.observe_every`` steps, step 0 and the last.
 
     Units: every dataset carries a ``units`` attribute (:data:`ti_dk.output.units.UNITS`). The
     statistics are of the number density, per unit volume (``/stats`` attribute ``cell_volume``
@@ -218,6 +221,21 @@ class RunFile:
             if k not in self.diag:
                 self._grow(self.diag, k, (), np.asarray(v).dtype if len(v) else np.float64)
             self._append(self.diag[k], v)
+        self.h5.flush()
+
+    def write_series(self, records: dict[str, list], names: tuple[str, ...]) -> None:
+        """Append per-member records: ``names`` (the observables) to ``/observables/<name>``, the
+        run's own series to ``/series/<key>``, each ``(records, members)``, and their ``time`` to both."""
+        require_space(self.at, 8 * sum(np.size(v) for v in records.values()))
+        for group, keys in (("series", [k for k in records if k not in names]), ("observables", ["time", *names])):
+            if group == "observables" and not names:
+                continue
+            g = self.h5.require_group(group)
+            for k in keys:
+                v = np.asarray(records[k])
+                if k not in g:
+                    self._grow(g, k, v.shape[1:], v.dtype)
+                self._append(g[k], v)
         self.h5.flush()
 
     def write_table(self, name: str, records: list[dict]) -> None:

@@ -35,6 +35,12 @@ UNITS = {
     "regrid/removed": "particles removed from cells no longer covered" + SUM,
     "regrid/on_demand": "members regridded off schedule (0: a scheduled regrid of all)",
     "frames/time": "L^2/(2D) (the time of the frame)",
+    "series/time": "L^2/(2D) (the time of the record)",
+    "series/mass": "particles, per member",
+    "series/negative_cells": "cells with negative density, per member",
+    "series/particles": "particles in the particle region, per member",
+    "series/region_cells": "cells of the particle region, per member",
+    "observables/time": "L^2/(2D) (the time of the record)",
     "frames/negative_cells": "cells with negative density in member 0's frame",
 }
 
@@ -42,6 +48,8 @@ UNITS = {
 def units_of(path: str) -> str | None:
     """The ``units`` attribute of the dataset at ``path`` (``group/name``); None for one not listed."""
     group, name = path.strip("/").split("/", 1)
+    if group == "observables" and name != "time":  # the scene's own names
+        return "particles in the region (cells whose centre satisfies its condition), per member"
     if name.startswith("compare_"):
         plain = units_of(f"{group}/{name[len('compare_'):]}")
         return plain and f"{plain}; of the compared method"

@@ -2,7 +2,9 @@
 
 A formula (``potential = "0.5*((x-0.5)/0.08)**2"``, an initial ``density``) is parsed with
 :mod:`ast` and only a whitelist is accepted: numbers, ``x y z``, ``pi e``, ``+ - * / **``, unary
-minus and the functions of :data:`FUNCS` (``step(u)``: 1 where u ≥ 0, else 0, for boxes); nothing is ever passed to ``eval``. The parsed formula
+minus and the functions of :data:`FUNCS` (``step(u)``: 1 where u ≥ 0, else 0, for boxes); nothing is ever passed to ``eval``.
+A condition (``left = "x < 0.5"``, ``[observables]``) parses with ``logic=True``, which adds
+``< <= > >=`` (chained too), ``and``, ``or`` and ``not`` (1 where true, else 0; NumPy only). The parsed formula
 is a tree of tuples, evaluated three ways: on NumPy arrays (:func:`numpy_value`), as Taichi
 expressions at kernel-compile time (:func:`taichi_value`: a plain Python walk over the tree that
 Taichi's compiler runs while it traces the calling ``ti.func``, so each formula compiles to straight
@@ -11,6 +13,7 @@ arithmetic), and differentiated symbolically (:func:`derivative`) for the partic
 from __future__ import annotations
 
 import ast
+import functools
 import math
 from dataclasses import dataclass
 from typing import Any, Callable
@@ -22,6 +25,7 @@ CONSTANTS = {"pi": math.pi, "e": math.e}
 FUNCS = ("sin", "cos", "tan", "exp", "log", "sqrt", "abs", "tanh", "atan", "step")  # step(u): 1 where u >= 0, else 0
 _BINARY = {ast.Add: "add", ast.Sub: "sub", ast.Mult: "mul", ast.Div: "div", ast.Pow: "pow"}
 MAX_CHARS, MAX_DEPTH = 5_000, 100  # a formula's length and nesting (its tree is walked recursively)
+_COMPARE = {ast.Lt: "lt", ast.LtE: "le", ast.Gt: "gt", ast.GtE: "ge"}  # conditions only (logic=True)
 QUADRATURE = {1: 16, 2: 8, 3: 4}  # Gauss–Legendre points per axis for cell averages, by dimension
 
 
@@ -61,10 +65,11 @@ def _make(op: str, a: tuple, b: tuple | None = None) -> tuple:
     return _num(1) if _is(b, 0) else a if _is(b, 1) else ("pow", a, b)
 
 
-def parse(text: str) -> tuple:
-    """The tree of formula ``text``; :class:`ExprError` naming what is not allowed."""
+def parse(text: str, logic: bool = False) -> tuple:
+    """The tree of formula ``text`` (``logic``: a condition, comparisons allowed); :class:`ExprError`
+    naming what is not allowed."""
     if not isinstance(text, str) or not text.strip():
-        raise ExprError("give a formula in x, y, z as text")
+        raise ExprError(f"give a {'condition' if logic else 'formula'} in x, y, z as text")
     too_big = f"give a formula of at most {MAX_CHARS:,} characters and {MAX_DEPTH} levels of nesting"
     if len(text) > MAX_CHARS:
         raise ExprError(f"{quoted(text)} is too long: {too_big}")
@@ -81,7 +86,7 @@ def parse(text: str) -> tuple:
     if depth > MAX_DEPTH:
         raise ExprError(f"{quoted(text)} is nested {depth} levels deep (a sum or product of n terms is n deep): "
                         f"{too_big}")
-    return _node(body)
+    return _node(body, logic)
 
 
 def quoted(text: str) -> str:
@@ -89,8 +94,18 @@ def quoted(text: str) -> str:
     return repr(text) if len(text) <= 60 else f"{text[:40]!r}… ({len(text):,} characters)"
 
 
-def _node(n: ast.AST) -> tuple:
-    allowed = f"use numbers, {', '.join(VARIABLES)}, pi, e, + - * / ** and {', '.join(FUNCS)}"
+def _node(n: ast.AST, logic: bool = False) -> tuple:
+    allowed = f"use numbers, {', '.join(VARIABLES)}, pi, e, + - * / **{' < <= > >= and or not' * logic} and " \
+              f"{', '.join(FUNCS)}"
+    if logic and isinstance(n, ast.Compare) and all(type(o) in _COMPARE for o in n.ops):
+        terms = [_node(c, logic) for c in (n.left, *n.comparators)]
+        parts = [(_COMPARE[type(o)], a, b) for o, a, b in zip(n.ops, terms, terms[1:])]  # a < b < c: both
+        return functools.reduce(lambda a, b: ("and", a, b), parts)
+    if logic and isinstance(n, ast.BoolOp):
+        return functools.reduce(lambda a, b: ("and" if isinstance(n.op, ast.And) else "or", a, b),
+                                [_node(v, logic) for v in n.values])
+    if logic and isinstance(n, ast.UnaryOp) and isinstance(n.op, ast.Not):
+        return ("not", _node(n.operand, logic))
     if isinstance(n, ast.Constant) and isinstance(n.value, (int, float)) and not isinstance(n.value, bool):
         return _num(n.value)
     if isinstance(n, ast.Name) and n.id in VARIABLES:
@@ -98,13 +113,13 @@ def _node(n: ast.AST) -> tuple:
     if isinstance(n, ast.Name) and n.id in CONSTANTS:
         return _num(CONSTANTS[n.id])
     if isinstance(n, ast.UnaryOp) and isinstance(n.op, (ast.USub, ast.UAdd)):
-        a = _node(n.operand)
+        a = _node(n.operand, logic)
         return _make("neg", a) if isinstance(n.op, ast.USub) else a
     if isinstance(n, ast.BinOp) and type(n.op) in _BINARY:
-        return _make(_BINARY[type(n.op)], _node(n.left), _node(n.right))
+        return _make(_BINARY[type(n.op)], _node(n.left, logic), _node(n.right, logic))
     if (isinstance(n, ast.Call) and isinstance(n.func, ast.Name) and n.func.id in FUNCS and len(n.args) == 1
             and not n.keywords):
-        a = _node(n.args[0])
+        a = _node(n.args[0], logic)
         if a[0] == "num":
             return _num(numpy_value(("call", n.func.id, a), ()))
         return ("call", n.func.id, a)
@@ -176,11 +191,21 @@ def numpy_value(t: tuple, x: tuple) -> Any:
         return x[t[1]]
     if op == "neg":
         return -numpy_value(t[1], x)
+    if op == "not":
+        return ~truth(numpy_value(t[1], x))
     with np.errstate(all="ignore"):  # callers check that the result is finite
         if op == "call":
             return _NUMPY[t[1]](numpy_value(t[2], x))
         u, v = numpy_value(t[1], x), numpy_value(t[2], x)
-        return {"add": np.add, "sub": np.subtract, "mul": np.multiply, "div": np.divide, "pow": np.power}[op](u, v)
+        return {"add": np.add, "sub": np.subtract, "mul": np.multiply, "div": np.divide, "pow": np.power,
+                "lt": np.less, "le": np.less_equal, "gt": np.greater, "ge": np.greater_equal,
+                "and": lambda a, b: truth(a) & truth(b), "or": lambda a, b: truth(a) | truth(b)}[op](u, v)
+
+
+def truth(value: Any) -> np.ndarray:
+    """A condition's value as booleans: true where nonzero and not NaN (0/0 is never true)."""
+    v = np.asarray(value, dtype=np.float64)
+    return (v != 0) & ~np.isnan(v)
 
 
 class TaichiValue:

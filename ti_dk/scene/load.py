@@ -18,7 +18,7 @@ else:  # pragma: no cover - exercised on Python 3.10 only
 
 import numpy as np
 
-from . import initial
+from . import initial, observables
 from .expr import ExprError, Potential, quoted
 from ..hybrid.ghosts import ID_BITS_MIN
 from .checks import (COMPUTED, InputWarning, check_hybrid_sizes, check_initial, check_potential, check_time_step,
@@ -124,6 +124,7 @@ def make_scene(flat: dict[str, Any], initial_density: bool = True) -> Scene:
         if flat["compare"] != method:  # comparing with itself: nothing
             kw["method"]["compare"] = flat["compare"]
     kw["stats"].update(_stats_keys(flat, kw["time"].get("t_end", TimeKeys.t_end)))
+    kw["stats"].update(observables.keys(flat.get("observables"), grid))  # [observables]: regions of this grid
     scene = Scene(grid=grid, init=init, **kw.pop(None), **{s: SECTIONS[s](**v) for s, v in kw.items() if s})
     try:
         _check_choices(scene)

@@ -64,6 +64,7 @@ MAX_FIELD = 2**31 - 1  # Taichi indexes a field with 32-bit integers: members x 
 MAX_PPC = 1e15  # particles per cell: beyond, counts are not exact in f64 and fourth moments overflow
 NAME_RE = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,99}")  # a scene name is a plain file name
 _RG = RegridParams()  # the clustering defaults, written once in regrid.py
+SERIES_POINTS = 200  # a run's per-member series without observables: about this many records
 
 
 class ConfigError(ValueError):
@@ -252,11 +253,16 @@ class StatsKeys:
                                           (), form="a list of numbers in [0, t_end]")
     t_equil: float | None = key("special", "stationary runs: pool samples after this time (default: not stationary)",
                                 None, form="a number in [0, t_end)")
-    sample_every: int = key("int", "stationary runs: pool every k-th step", 1, lo=1, hi=MAX_STEPS)
+    sample_every: int = key("int", "stationary runs: pool every k-th step; observables: record every k-th step", 1,
+                            lo=1, hi=MAX_STEPS)
     histogram: tuple[int, int] | None = key("special", "per-cell histogram of particles per cell, one-particle bins",
                                             None, form="[lo, hi], whole numbers with lo < hi")
     structure_factor: bool = key("bool", "static structure factor S(k) of the count fluctuations per row "
                                  "(/stats/structure_factor, a PNG beside the frames)", False)
+    observables: tuple[tuple[str, str], ...] = key(
+        "special", "named regions whose particle count per member is recorded every sample_every steps "
+        "(/observables/<name>; a cell counts when its centre is inside)", (),
+        form='a table [observables] of name = "condition in x, y, z", e.g. left = "x < 0.5"')
 
 
 @dataclass(frozen=True)
@@ -317,6 +323,12 @@ class Scene:
         if self.stats.t_equil is not None:
             return (self.n_steps,)
         return tuple(sorted({min(self.n_steps, round(t / self.dt)) for t in self.stats.output_times}))
+
+    @property
+    def observe_every(self) -> int:
+        """Steps between a run's per-member records (``/series``, ``/observables``; step 0 and the
+        last are recorded too): ``sample_every`` with observables, else about :data:`SERIES_POINTS` in all."""
+        return self.stats.sample_every if self.stats.observables else max(1, self.n_steps // SERIES_POINTS)
 
     @property
     def stability_number(self) -> float:
