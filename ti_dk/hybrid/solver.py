@@ -78,6 +78,7 @@ class HybridSolver(Regridding, RegionSolver):
         self.regrids: list[dict] = []  # one record per regrid
         self._change = 0.0  # created − removed at this step's regrid
         self._removed = 0.0  # SPDE content Σ q V_c of the cells the last regrid covered anew
+        self._created = 0  # particles the last regrid sampled into them
         self.timing = {"spde": 0.0, "particles": 0.0, "regrid": 0.0}  # seconds spent in each part
         self._trigger = params.floor * params.threshold  # content below which an extension is due
         self._low: int | None = None  # uncovered cells below the trigger at the last diagnose (None: not known)
