@@ -55,15 +55,11 @@ class Region:
     @property
     def boxes(self) -> "list[list[regrid.Box]] | tiles.MemberBoxes":
         """Each member's region as boxes: Berger–Rigoutsos's, or one per tile (made when asked)."""
-        if self.tiles is None:
-            return self._boxes
-        return tiles.MemberBoxes(self._mask, self.tile)
+        return self._boxes if self.tiles is None else tiles.MemberBoxes(self._mask, self.tile)
 
     def box_count(self) -> int:
         """How many boxes :attr:`boxes` holds, all members."""
-        if self.tiles is None:
-            return sum(len(b) for b in self._boxes)
-        return tiles.count(self._mask, self.tile)
+        return sum(len(b) for b in self._boxes) if self.tiles is None else tiles.count(self._mask, self.tile)
 
     def plan_tiles(self, spde, keep: float) -> tuple[np.ndarray, int]:
         """A new region of tiles for every member from ``spde``, flagged on the device
