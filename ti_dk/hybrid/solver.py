@@ -54,8 +54,9 @@ class HybridSolver(Regridding, RegionSolver):
 
     Regridding (every ``regrid_interval`` steps, at the start, and on demand for a member that
     starts a step with an uncovered cell below ``regrid_floor · threshold``, see :meth:`extend`;
-    0 keeps the first region): tag,
-    buffer and Berger–Rigoutsos per member; particles in cells that stay covered are kept, cells
+    0 keeps the first region): tag and
+    buffer, then tiles flagged on the device with hysteresis (:mod:`.tiles`, the default) or
+    Berger–Rigoutsos per member on the host (``region = "boxes"``); particles in cells that stay covered are kept, cells
     that leave the region keep their count as density, newly covered cells are sampled from the
     SPDE (the only step that changes the total; logged in ``regrids``). At the start the state is
     the piecewise-constant initial condition, so those particles lie uniformly in their cells.
