@@ -117,9 +117,8 @@ def test_dirichlet_ledger():
 
 def _case_v(members, **kw):
     """The authors' void case (issue 11): 100 periodic cells, 12.5 per cell, cells 41–60 empty,
-    the region fixed to the void plus one cell each side (tiles of one cell: the tags exactly),
-    C = 1/8, 200 steps."""
-    kw = dict(dict(C=0.125, t_end=0.0025, seed=11, tile=1), **kw)
+    the region fixed to the void plus one cell each side, C = 1/8, 200 steps."""
+    kw = dict(dict(C=0.125, t_end=0.0025, seed=11), **kw)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", ClampWarning)  # C = 1/8 clamps 0.5 % of the steps: in the exact answer
         return load_scene("void1d", method="hybrid", ppc=12.5, void_lo=0.4, void_hi=0.6, ensemble=members,

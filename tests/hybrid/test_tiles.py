@@ -39,7 +39,7 @@ def _blob(cells, **kw):
         warnings.simplefilter("ignore", InputWarning)  # void1d's output_times past this t_end
         return load_scene("void1d", init="expression", method="hybrid", cells=[cells, cells], boundary="neumann",
                           density=f"40*exp(-((x-0.5)**2+(y-0.5)**2)/(2*{sigma}**2))", threshold=5,
-                          regrid_interval=10, t_end=0.001, ensemble=1, tile=0, **kw)  # void1d's tile 1 undone
+                          regrid_interval=10, t_end=0.001, ensemble=1, **kw)
 
 
 def test_the_blob_core_is_left_to_the_spde_from_the_start():

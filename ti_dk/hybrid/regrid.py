@@ -21,7 +21,7 @@ class RegridParams:
     """Region parameters (paper §3.2; the names follow AMReX).
 
     ``region``: ``tiles`` (fixed tiles flagged on the device, :mod:`.tiles`) or ``boxes``
-    (Berger–Rigoutsos, :func:`cluster`, the paper's); ``tile``: the tiles' side in cells (0: 8 in
+    (Berger–Rigoutsos, :func:`cluster`, the paper's); ``tile``: the tiles' side in cells (0: 1 in
     1D, 4 in 2D and 3D); ``release``: a covered tile leaves the region only when all its cells,
     grown by the buffer, hold at least ``release · threshold`` particles (hysteresis);
     ``threshold``: tag cells holding fewer particles than this (and every negative cell);

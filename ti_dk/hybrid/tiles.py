@@ -21,7 +21,7 @@ import taichi as ti
 
 from ..core.grid import PERIODIC, Grid
 from .regrid import Box
-DEFAULT_SIDE = {1: 8, 2: 4, 3: 4}  # tile side in cells where ``tile = 0``, by dimension
+DEFAULT_SIDE = {1: 1, 2: 4, 3: 4}  # tile side in cells where ``tile = 0``, by dimension (1D: the tags exactly)
 
 
 def side_for(tile: int, cells: tuple[int, ...]) -> int:
