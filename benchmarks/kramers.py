@@ -1,17 +1,17 @@
 """Issue 28: the crossing rate of the double well (scenes/doublewell2d.toml) in `particle`, `fv` and
-`hybrid`: the particles in the right well (x > ½) against time, the fitted rate per method, and a
-Kramers estimate beside them.
+`hybrid`: the particles in the right well (x > ½) against time, the rate per method from
+``ti_dk.crossing_rate``, and a Kramers estimate beside them.
 
     PYTHONPATH=. python benchmarks/kramers.py [--cells 32] [--members 6] [--t-end 0.05] [--threads 1]
         [--methods particle,hybrid,fv] [--set threshold=50]
 
-Each member runs on its own (``ensemble = 1``, ``member0 = k``: the same streams as member k of one
-ensemble run) so that its right-well count N_R(t) is known and the spread over members gives the
-standard errors; the wall time of a method is the sum of its members' runs (compiling included).
+One ensemble run per method with all the members; the scene's observables ``left`` (x < ½) and
+``right`` (x > ½) are recorded per member every ``sample_every`` steps, so the spread over the
+members gives the standard errors; the wall time of a method is its run's (compiling included).
 The start keeps the scene's density per unit volume (4e6 e^{-V} on the blob) when ``--cells``
-changes. Rates: the slope of f = N_R/N against t on t >= ``--fit-from`` (least squares per member,
-mean and standard error over members) and the symmetric two-state model's k from
--ln(1 - 2f)/2 against t, which is the same slope while f << ½.
+changes. Rates on t >= ``--fit-from``: ``ti_dk.crossing_rate`` (the symmetric two-state model's k,
+the slope of -ln(1 - 2f)/2 with f = N_R/(N_L + N_R), mean and standard error over the members)
+and, beside it, the plain least-squares slope of f, which is the same while f << ½.
 """
 import argparse
 import json
@@ -21,7 +21,7 @@ import time
 import numpy as np
 
 import ti_dk
-from ti_dk.output.series import two_state_rate
+from ti_dk.output.series import mean_se
 
 GAMMA, D = 5e-4, 0.5  # the scene's V = [(x−0.3)²(x−0.7)² + (y−½)⁴]/γ, U = 2V; D = ½ in the code's units
 BLOB = "exp(-((x-0.3)**2*(x-0.7)**2 + (y-0.5)**4)/5e-4)*step(x-0.2)*step(0.4-x)*step(y-0.25)*step(0.75-y)"
@@ -43,24 +43,15 @@ def kramers_rate() -> tuple[float, float, float, float]:
     return D / (2 * math.pi) * math.sqrt(umin * abs(usad)) * math.exp(-du), umin, usad, du
 
 
-def member_series(method: str, cells: int, members: int, t_end: float, rows: int, c: float, extra: dict):
-    """N_R(t) and N(t) of each member, (members, rows + 1) with t = 0 first, the times, and the
-    wall seconds of all the method's runs."""
-    times = [t_end * (k + 1) / rows for k in range(rows - 1)]
+def ensemble_run(method: str, cells: int, members: int, t_end: float, c: float, extra: dict):
+    """One ensemble run of the scene with all the members (its observables recorded), the scene
+    and the run's wall seconds."""
     scene = ti_dk.load_scene("doublewell2d", method=method, compare=None, cells=[cells, cells], t_end=t_end,
-                             output_times=times, ensemble=1, C=c,
+                             output_times=[], ensemble=members, C=c,
                              density=f"{4e6 / cells**2!r}*{BLOB}", **extra)
-    x = (np.arange(cells) + 0.5) / cells
-    right, total, wall = [], [], 0.0
-    for m in range(members):
-        t0 = time.perf_counter()
-        res = ti_dk.run(scene, progress=False, member0=m)
-        wall += time.perf_counter() - t0
-        n_x = res.stats.mean.sum(axis=2) * res.cell_volume  # (rows, cells in x): particles per column
-        n0 = scene.initial_ppc.sum()
-        right.append(np.concatenate([[scene.initial_ppc[x > 0.5].sum()], n_x[:, x > 0.5].sum(axis=1)]))
-        total.append(np.concatenate([[n0], n_x.sum(axis=1)]))
-    return np.array(right), np.array(total), np.concatenate([[0.0], res.times]), wall
+    t0 = time.perf_counter()
+    res = ti_dk.run(scene, progress=False)
+    return res, scene, time.perf_counter() - t0
 
 
 def json_pair(text: str) -> tuple[str, object]:
@@ -72,14 +63,14 @@ def json_pair(text: str) -> tuple[str, object]:
         return key, value
 
 
-def slopes(t: np.ndarray, y: np.ndarray, t_from: float) -> np.ndarray:
-    """Least-squares slope of each row of y against t over t >= t_from."""
+def slopes(t: np.ndarray, f: np.ndarray, t_from: float) -> np.ndarray:
+    """Least-squares slope of f against t over t >= t_from, per member (f: (records, members))."""
     keep = t >= t_from - 1e-12
-    return np.polyfit(t[keep], y[:, keep].T, 1)[0]
+    return np.polyfit(t[keep], f[keep], 1)[0]
 
 
-def mean_se(v: np.ndarray) -> tuple[float, float]:
-    return float(v.mean()), float(v.std(ddof=1) / math.sqrt(v.size)) if v.size > 1 else float("nan")
+def pm(mean_and_se, digits: int) -> str:
+    return f"{float(mean_and_se[0]):.{digits}f} ± {float(mean_and_se[1]):.{digits}f}"
 
 
 def main() -> None:
@@ -87,7 +78,7 @@ def main() -> None:
     ap.add_argument("--cells", type=int, default=32)
     ap.add_argument("--members", type=int, default=6)
     ap.add_argument("--t-end", type=float, default=0.05)
-    ap.add_argument("--rows", type=int, default=10, help="output rows (equally spaced, t_end the last)")
+    ap.add_argument("--rows", type=int, default=10, help="rows of the N_R table (equally spaced, t_end the last)")
     ap.add_argument("--fit-from", type=float, default=0.01, help="fit the rate on t >= this (after the blob relaxes)")
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--C", type=float, default=0.02, help="time step (the scene's 0.025 is past fv's limit at 32x32)")
@@ -97,35 +88,36 @@ def main() -> None:
     args = ap.parse_args()
     ti_dk.init("cpu", args.threads)
     methods = args.methods.split(",")
-    out = {m: member_series(m, args.cells, args.members, args.t_end, args.rows, args.C,
-                            dict(json_pair(kv) for kv in args.set)) for m in methods}
-    t = next(iter(out.values()))[2]
-    n0 = next(iter(out.values()))[1][0, 0]
+    extra = dict(json_pair(kv) for kv in args.set)
+    out = {m: ensemble_run(m, args.cells, args.members, args.t_end, args.C, extra) for m in methods}
+    res, scene, _ = next(iter(out.values()))
+    t = res.series["time"]
+    rows = [int(np.argmin(abs(t - args.t_end * (k + 1) / args.rows))) for k in range(args.rows)]
     sets = "".join(", " + kv for kv in args.set)
-    print(f"doublewell2d, {args.cells}x{args.cells} cells, {args.members} members per method, t_end = {args.t_end}, "
-          f"C = {args.C}, {args.threads} thread(s){sets}; N(0) = {n0:.0f} particles per member\n")
+    print(f"doublewell2d, {args.cells}x{args.cells} cells, {args.members} members per method (one ensemble run "
+          f"each), t_end = {args.t_end}, C = {args.C}, {args.threads} thread(s){sets}; "
+          f"N(0) = {scene.initial_ppc.sum():.0f} particles per member, {len(t)} records\n")
     print("| t | " + " | ".join(f"N_R {m}" for m in methods) + " |")
     print("| ---: | " + " | ".join("---:" for _ in methods) + " |")
-    for k, tk in enumerate(t):
-        cells = [f"{mean_se(out[m][0][:, k])[0]:.1f} ± {mean_se(out[m][0][:, k])[1]:.1f}" for m in methods]
-        print(f"| {tk:.4f} | " + " | ".join(cells) + " |")
+    for k in rows:
+        print(f"| {t[k]:.4f} | " + " | ".join(pm(mean_se(out[m][0].series["right"][k]), 1) for m in methods) + " |")
     rate, umin, usad, du = kramers_rate()
     print(f"\nKramers (one way): U''(min) = {umin:.1f}, U''(saddle) = {usad:.1f}, dU = {du:.3f} -> k = {rate:.4f}\n")
     print(f"| method | slope of N_R/N, t >= {args.fit_from} | two-state k | k / Kramers | wall [s] | s per member |")
     print("| --- | ---: | ---: | ---: | ---: | ---: |")
     rates = {}
     for m in methods:
-        right, total, _, wall = out[m]
-        f = right / total
-        s = mean_se(slopes(t, f, args.fit_from))
-        k2 = mean_se(two_state_rate(t, f, args.fit_from))
-        rates[m] = k2
-        print(f"| {m} | {s[0]:.4f} ± {s[1]:.4f} | {k2[0]:.4f} ± {k2[1]:.4f} | {k2[0] / rate:.2f} | {wall:.1f} | "
+        res, _, wall = out[m]
+        right, left = res.series["right"], res.series["left"]
+        s = mean_se(slopes(res.series["time"], right / (left + right), args.fit_from))
+        k2 = rates[m] = ti_dk.crossing_rate(res, "left", "right", t_from=args.fit_from)
+        print(f"| {m} | {pm(s, 4)} | {pm((k2.value, k2.se), 4)} | {k2.value / rate:.2f} | {wall:.1f} | "
               f"{wall / args.members:.1f} |")
     if "particle" in rates:
+        p = rates["particle"]
         for m in methods:
             if m != "particle":
-                z = (rates[m][0] - rates["particle"][0]) / math.hypot(rates[m][1], rates["particle"][1])
+                z = (rates[m].value - p.value) / math.hypot(rates[m].se, p.se)
                 print(f"{m} vs particle: z = {z:+.2f} ({'within' if abs(z) < 2 else 'beyond'} 2 standard errors)")
 
 
