@@ -60,7 +60,7 @@ def _title(scene, members: int) -> str:
 
 
 def _save(fig, axes: list, path: Path) -> Path:
-    axes[-1].set_xlabel("t [L²/2D]")
+    axes[-1].set_xlabel("t [L²/(2D)]")
     for ax in axes:
         ax.grid(alpha=0.3)
     fig.tight_layout()
@@ -130,8 +130,8 @@ class Rate:
 
     def __str__(self) -> str:
         if self.members < 2:
-            return f"{self.value:.4g} per L²/2D (one member: no standard error)"
-        return f"{self.value:.4g} ± {self.se:.2g} per L²/2D ({self.members} members)"
+            return f"{self.value:.4g} per L²/(2D) (one member: no standard error)"
+        return f"{self.value:.4g} ± {self.se:.2g} per L²/(2D) ({self.members} members)"
 
 
 def two_state_rate(t: np.ndarray, f: np.ndarray, t_from: float = 0.0) -> np.ndarray:
@@ -161,12 +161,12 @@ def crossing_rate(source, start: str = "left", end: str = "right", t_from: float
     start, end : str
         The observables' names (``[observables]`` of the scene).
     t_from : float
-        The first time of the fit [L²/2D].
+        The first time of the fit [L²/(2D)].
 
     Returns
     -------
     Rate
-        ``value`` [1 / (L²/2D)], ``se`` (NaN for one member), ``members``.
+        ``value`` [1 / (L²/(2D))], ``se`` (NaN for one member), ``members``.
     """
     series = read_series(source)
     missing = [name for name in (start, end) if name not in series]
