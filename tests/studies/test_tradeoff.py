@@ -15,7 +15,7 @@ def test_criterion_picks_the_smallest_threshold_within_tolerance():
 
 
 def test_tradeoff_command_on_two_settings(tmp_path):
-    r = command("studies.tradeoff", "--only", "fv", "particle", "--ensemble", "8", "--t-end", "0.0005", "--cells", "8",
+    r = command("studies.tradeoff", "--only", "fv", "particle", "--ensemble", "8", "--t-end", "0.0005", "--cells", "16",
                 "--ellipse-members", "4", "--planned", "100", "--out", str(tmp_path))
     assert r.returncode == 0, r.stderr
     with h5py.File(tmp_path / "tradeoff.h5") as f:
@@ -26,7 +26,7 @@ def test_tradeoff_command_on_two_settings(tmp_path):
         assert (tmp_path / name / "tradeoff.csv").exists() and (tmp_path / name / "tradeoff.png").exists()
     assert rows["void1d"][0]["negative_cells"] == 0 < rows["void1d"][1]["negative_cells"]  # fv goes negative
     md = (tmp_path / "tradeoff.md").read_text()
-    assert "## ellipse2d (8², t = 0.00096, pilot 4 members)" in md  # the scene's output time
+    assert "## ellipse2d (16², t = 0.00096, pilot 4 members)" in md  # the scene's output time
     assert "errors in SEs of 100 members" in md
     assert (tmp_path / "tradeoff.png").stat().st_size > 10_000
     bad = command("studies.tradeoff", "--only", "nonsense", "--out", str(tmp_path / "bad"))

@@ -28,7 +28,7 @@ from ..scene.schema import ConfigError
 from .files import is_complete, output_error
 
 # what ti_dk writes inside its folders (a frame, S(k), a snapshot or one a killed run left half-written)
-OURS_IN = {"frames": re.compile(r"frame_\d{4,}\.png|structure_factor\.png"),
+OURS_IN = {"frames": re.compile(r"frame_\d{4,}\.png|structure_factor\.png|series\.png|observables\.png"),
            "snapshots": re.compile(r"data\d{6}\.h5(\.\w+\.tmp)?")}
 
 

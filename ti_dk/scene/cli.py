@@ -153,7 +153,9 @@ def quick_scene(scene_arg: str, overrides: dict, scene: schema.Scene) -> tuple[s
     which C it took and why ("" where it kept the scene's)."""
     cells = [max(8, n // 4) for n in scene.grid.cells]
     quick = dict(overrides, cells=cells, name=f"{scene.name}_quick")
-    limit = checks.stability_limit(scene.replace(cells=tuple(cells)))
+    with warnings.catch_warnings():  # the coarse grid at the scene's C, only to read its limit: no clamp warning
+        warnings.simplefilter("ignore")
+        limit = checks.stability_limit(scene.replace(cells=tuple(cells), allow_unstable=True))  # replace checks C
     note = ""
     if scene.time.C >= limit and not scene.time.allow_unstable and scene.method.name != "particle":
         quick["C"] = float(f"{limit / 2:.2g}")
