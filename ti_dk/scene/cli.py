@@ -99,6 +99,11 @@ def _run(args: argparse.Namespace) -> int:
     """The run the parsed command line asks for; its summary on stdout."""
     with signals.stop_at_once():  # nothing written yet: a signal ends even a read that waits
         scene = _prepare(args)
+    # Taichi's start outside stop_at_once: a process ended at once (os._exit) while ti.init holds the
+    # kernel cache's lock file leaves it behind, and every later run warns "Lock ... ticache.lock failed"
+    signals.check_stop()
+    runtime.init(args.arch, args.threads)
+    signals.check_stop()
     _announce(scene)
     if args.executor == "dask":
         result = ensemble.run(scene, "dask", out=args.out, progress=not args.no_progress, chunk=args.chunk,
@@ -113,7 +118,7 @@ def _run(args: argparse.Namespace) -> int:
 
 
 def _prepare(args: argparse.Namespace) -> schema.Scene:
-    """The scene the command line asks for, its options checked and Taichi started."""
+    """The scene the command line asks for, its options checked."""
     scene, caught, note = scene_of(args)
     load.check_options(scene, out=args.out, executor=args.executor, workers=args.workers,
                        chunk=args.chunk, threads=args.threads, scheduler=args.scheduler,
@@ -122,9 +127,6 @@ def _prepare(args: argparse.Namespace) -> schema.Scene:
     warn(caught)
     if note:
         print(f"ti_dk: {note}", file=sys.stderr)
-    signals.check_stop()
-    runtime.init(args.arch, args.threads)
-    signals.check_stop()
     return scene
 
 
