@@ -23,7 +23,8 @@ from ..output.files import RunFile, is_complete, output_error
 from ..output.series import summary_lines
 from ..methods.registry import make_solver  # also where tests and benchmarks build a solver
 from .runtime import Result, init, initialized, started_here, stats_of
-from .signals import SimulationError, check_stop
+from ..core.errors import SimulationError
+from .signals import check_stop
 from ..methods.solver import Solver
 
 COMPARED = ("mass", "min_density", "negative_cells")  # diagnostics of the method run alongside, as compare_*

@@ -19,7 +19,8 @@ from tqdm import tqdm
 
 from . import controller, runtime, signals
 from ..scene.load import check_options
-from ..scene.schema import ConfigError, Scene
+from ..core.errors import ConfigError
+from ..scene.schema import Scene
 from ..output.claim import Outputs
 from ..output.files import (RunFile, atomic_h5, output_error, read_group, read_rows, same_scene, scene_json, write_group,
                  write_rows)

@@ -11,7 +11,8 @@ from pathlib import Path
 import numpy as np
 import taichi as ti
 
-from ..scene.schema import ConfigError, Scene
+from ..core.errors import ConfigError
+from ..scene.schema import Scene
 
 ARCHS = {"cpu": ti.cpu, "cuda": ti.cuda}  # the backends a run may ask for, by their --arch name
 

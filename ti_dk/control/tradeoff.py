@@ -29,7 +29,8 @@ from ..core import bias
 from ..output import tradeoff as write
 from ..scene.estimates import work_estimate
 from ..scene.load import command_overrides, load_scene, make_scene
-from ..scene.schema import ConfigError, Scene
+from ..core.errors import ConfigError
+from ..scene.schema import Scene
 
 REFERENCE = "particle"
 BUDGET = 120.0  # seconds the pilot may take by the work estimates, when its ensemble is not given

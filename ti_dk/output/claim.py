@@ -24,7 +24,7 @@ from pathlib import Path
 
 import h5py
 
-from ..scene.schema import ConfigError
+from ..core.errors import ConfigError
 from .files import is_complete, output_error
 
 # what ti_dk writes inside its folders (a frame, S(k), a snapshot or one a killed run left half-written)

@@ -17,6 +17,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 
+from ..core.errors import OutputError
 from .units import units_of
 STAT_KEYS = ("mean", "variance", "skewness", "kurtosis")
 
@@ -27,10 +28,6 @@ def package_version() -> str:
         return metadata.version("ti_dk")
     except metadata.PackageNotFoundError:  # a source tree that was never pip-installed
         return "unknown"
-
-
-class OutputError(RuntimeError):
-    """Output could not be written (disk full, permission, quota): one line, exit status 1."""
 
 
 def output_error(path: Path, exc: OSError) -> OutputError:

@@ -13,7 +13,7 @@ import warnings
 
 from . import checks, estimates, load, schema
 from ..control import controller, ensemble, runtime, signals
-from ..output.files import OutputError
+from ..core.errors import OutputError
 
 
 class Parser(argparse.ArgumentParser):

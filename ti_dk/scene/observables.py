@@ -19,8 +19,8 @@ from typing import Any
 
 import numpy as np
 
-from .expr import VARIABLES, ExprError, axes_used, numpy_value, parse, truth
-from .schema import ConfigError
+from ..core.errors import ConfigError, ExprError
+from .expr import VARIABLES, axes_used, numpy_value, parse, truth
 
 NAME_RE = re.compile(r"[A-Za-z_][A-Za-z0-9_]{0,63}")  # an observable's name: an identifier
 SERIES = ("time", "mass", "negative_cells", "particles", "region_cells")  # a run's own per-member series

@@ -32,6 +32,7 @@ import numpy as np
 from . import initial
 from .expr import Potential
 from ..core.grid import Geometry
+from ..core.errors import ConfigError
 from ..hybrid.regrid import RegridParams
 from ..pools import LAYOUTS as POOL_LAYOUTS
 
@@ -65,10 +66,6 @@ MAX_PPC = 1e15  # particles per cell: beyond, counts are not exact in f64 and fo
 NAME_RE = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,99}")  # a scene name is a plain file name
 _RG = RegridParams()  # the clustering defaults, written once in regrid.py
 SERIES_POINTS = 200  # a run's per-member series without observables: about this many records
-
-
-class ConfigError(ValueError):
-    """Bad scene input; the message says what to change."""
 
 
 class ClampWarning(UserWarning):
