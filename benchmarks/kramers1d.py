@@ -64,7 +64,7 @@ def walk_mean(cells: int, dt: float, times: np.ndarray, sub: int = 256) -> np.nd
 def fv_mean(cells: int, dt: float, times: np.ndarray) -> np.ndarray:
     """f(t) of fv's mean: the Scharfetter–Gummel scheme, Dirichlet walls at density 0."""
     from ti_dk.methods.fluxes import bernoulli
-    from ti_dk.scene.expr import Potential
+    from ti_dk.core.expr import Potential
 
     h = 1.0 / cells
     ub = Potential.of(FORMULA, 1).cell_values((cells,), (1.0,), pad=1)

@@ -2,9 +2,9 @@
 name those same classes."""
 import ti_dk
 from ti_dk.control import signals
-from ti_dk.core import errors
+from ti_dk.core import errors, expr
 from ti_dk.output import files
-from ti_dk.scene import expr, schema
+from ti_dk.scene import schema
 
 
 def test_every_error_class_is_the_one_in_core_errors():

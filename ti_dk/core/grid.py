@@ -36,7 +36,7 @@ class Grid(Geometry):
 
     ``boundary[a] = (lo, hi)`` holds the boundary kind of each side of axis ``a``;
     ``reservoir[a]`` the Dirichlet reservoir number density of each side (particles per volume);
-    ``potential`` the external potential U (a :class:`ti_dk.scene.expr.Potential`, or None).
+    ``potential`` the external potential U (a :class:`ti_dk.core.expr.Potential`, or None).
     """
 
     cells: tuple[int, ...]

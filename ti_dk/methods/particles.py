@@ -6,8 +6,8 @@ import taichi as ti
 
 from .. import pools
 from ..core import rng
+from ..core.expr import taichi_value
 from ..core.grid import DIRICHLET, NEUMANN, PERIODIC, Grid, cell_of
-from ..scene.expr import taichi_value
 from .solver import Solver
 
 TABLE_REFINE = {1: 16, 2: 4, 3: 1}  # lattice points per cell and axis of a callable potential's gradient table
@@ -31,7 +31,7 @@ class Walker:
     The drift of an external potential U (``grid.potential``; Euler–Maruyama, ∇U at the position
     before the step, the whole axis step clamped so a particle still moves at most one cell) is
     compiled in only with one: a formula's gradient is differentiated symbolically
-    (:func:`~ti_dk.scene.expr.derivative`) and compiled to arithmetic; a callable's is read from
+    (:func:`~ti_dk.core.expr.derivative`) and compiled to arithmetic; a callable's is read from
     a table of central differences of U on a lattice :data:`TABLE_REFINE` times finer than the
     grid (nearest lattice point), one cell beyond each side for the reservoirs.
     """

@@ -11,7 +11,7 @@ import warnings
 import numpy as np
 
 from ..core.errors import ConfigError, ExprError, InitError
-from .expr import functions_used, numpy_value, quoted
+from ..core.expr import functions_used, numpy_value, quoted
 from .schema import CLAMP_WARN, MAX_PPC, ClampWarning, Scene
 from ..core.grid import Grid
 from ..hybrid.ghosts import HYBRID_STEP_LIMIT

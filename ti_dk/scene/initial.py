@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from ..core.errors import InitError
-from .expr import numpy_value, parse, axes_used, VARIABLES
+from ..core.expr import numpy_value, parse, axes_used, VARIABLES
 
 CONTEXT = ("x", "weights")  # arguments density_ppc supplies; the rest are scene keys
 

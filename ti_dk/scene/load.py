@@ -19,7 +19,7 @@ else:  # pragma: no cover - exercised on Python 3.10 only
 import numpy as np
 
 from . import initial, observables
-from .expr import ExprError, Potential, quoted
+from ..core.expr import ExprError, Potential, quoted
 from ..hybrid.ghosts import ID_BITS_MIN
 from .checks import (COMPUTED, InputWarning, check_hybrid_sizes, check_initial, check_potential, check_time_step,
                      check_unused)

@@ -30,7 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from . import initial
-from .expr import Potential
+from ..core.expr import Potential
 from ..core.grid import Geometry
 from ..core.errors import ConfigError
 from ..hybrid.regrid import RegridParams

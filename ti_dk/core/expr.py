@@ -20,7 +20,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from ..core.errors import ExprError
+from .errors import ExprError
 
 VARIABLES = ("x", "y", "z")  # axis 0, 1, 2
 CONSTANTS = {"pi": math.pi, "e": math.e}
