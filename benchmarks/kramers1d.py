@@ -29,7 +29,7 @@ import numpy as np
 import ti_dk
 from ti_dk.core import theory
 from ti_dk.output.series import two_state_rate
-from ti_dk.methods.registry import make_solver
+from ti_dk.control.registry import make_solver
 
 FORMULA = "2*(x-0.3)**2*(x-0.7)**2/5e-4"
 BLOB = "exp(-((x-0.3)**2*(x-0.7)**2)/5e-4)*step(x-0.2)*step(0.4-x)"

@@ -109,7 +109,7 @@ def test_layout_names_every_module_once():
 
 def test_public_api_is_importable_from_the_top():
     for name in ("load_scene", "run", "tradeoff", "init", "Scene", "Result", "ConfigError", "OutputError",
-                 "SimulationError", "available_scenes"):
+                 "SimulationError", "available_scenes", "make_solver"):
         assert getattr(ti_dk, name) is not None
     # not shadowed by a subpackage or module of that name (ti_dk/tradeoff.py is the command line)
     assert callable(ti_dk.run) and callable(ti_dk.load_scene) and callable(ti_dk.tradeoff)

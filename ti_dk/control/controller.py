@@ -21,7 +21,7 @@ from .handlers import Checkpoints, Clock, Diagnostics, Frames, Observations, Sna
 from ..output.claim import Outputs
 from ..output.files import RunFile, is_complete, output_error
 from ..output.series import summary_lines
-from ..methods.registry import make_solver  # also where tests and benchmarks build a solver
+from .registry import make_solver  # also where tests and benchmarks build a solver
 from .runtime import Result, init, initialized, started_here, stats_of
 from ..core.errors import SimulationError
 from .signals import check_stop
