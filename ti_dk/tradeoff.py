@@ -17,8 +17,8 @@ import argparse
 import sys
 
 from .control import runtime
+from .control.cli import guarded, parser, scene_of, warn
 from .control.tradeoff import ABOVE, BELOW, BUDGET, Candidate, tradeoff
-from .scene.cli import guarded, parser, scene_of, warn
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:

@@ -15,7 +15,8 @@ from tqdm import tqdm
 from .checkpoint import Progress, read_checkpoint
 from ..scene.estimates import work_estimate
 from ..scene.checks import check_initial
-from ..scene.load import check_options, scene_of
+from ..scene.load import scene_of
+from .options import check_options
 from ..scene.schema import Scene
 from .handlers import Checkpoints, Clock, Diagnostics, Frames, Observations, Snapshots, Statistics
 from ..output.claim import Outputs

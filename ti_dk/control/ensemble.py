@@ -18,7 +18,7 @@ import numpy as np
 from tqdm import tqdm
 
 from . import controller, runtime, signals
-from ..scene.load import check_options
+from .options import check_options
 from ..core.errors import ConfigError
 from ..scene.schema import Scene
 from ..output.claim import Outputs

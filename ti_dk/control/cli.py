@@ -11,9 +11,10 @@ import os
 import sys
 import warnings
 
-from . import checks, estimates, load, schema
-from ..control import controller, ensemble, runtime, signals
-from ..core.errors import OutputError
+from ..core.errors import ConfigError, OutputError, SimulationError, Stopped
+from ..scene import checks, estimates, load, schema
+from . import controller, ensemble, runtime, signals
+from .options import check_options
 
 
 class Parser(argparse.ArgumentParser):
@@ -84,14 +85,14 @@ def guarded(parse, body) -> int:
             args = parse()
             signals.check_stop()
             return body(args)
-        except schema.ConfigError as exc:
+        except ConfigError as exc:
             return _fail(str(exc))
-        except signals.Stopped as exc:
+        except Stopped as exc:
             return _fail(str(exc), exc.status)
         except OutputError as exc:
             _fail(str(exc), 1)
             _exit_now(1)
-        except signals.SimulationError as exc:
+        except SimulationError as exc:
             return _fail(str(exc), 1)
 
 
@@ -120,10 +121,10 @@ def _run(args: argparse.Namespace) -> int:
 def _prepare(args: argparse.Namespace) -> schema.Scene:
     """The scene the command line asks for, its options checked."""
     scene, caught, note = scene_of(args)
-    load.check_options(scene, out=args.out, executor=args.executor, workers=args.workers,
-                       chunk=args.chunk, threads=args.threads, scheduler=args.scheduler,
-                       checkpoint_every=args.checkpoint_every, restart=args.restart, movie=args.movie,
-                       frames=not args.no_frames)
+    check_options(scene, out=args.out, executor=args.executor, workers=args.workers,
+                  chunk=args.chunk, threads=args.threads, scheduler=args.scheduler,
+                  checkpoint_every=args.checkpoint_every, restart=args.restart, movie=args.movie,
+                  frames=not args.no_frames)
     warn(caught)
     if note:
         print(f"ti_dk: {note}", file=sys.stderr)
@@ -137,7 +138,7 @@ def scene_of(args: argparse.Namespace) -> tuple[schema.Scene, list[str], str]:
     overrides = load.command_overrides(args.set, {k: getattr(args, k, None) for k in load.FLAGS})
     quick, note = getattr(args, "quick", False), ""
     if quick and "cells" in overrides:
-        raise schema.ConfigError("--quick sets the cells (a quarter per axis): drop it or --set cells")
+        raise ConfigError("--quick sets the cells (a quarter per axis): drop it or --set cells")
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", schema.ClampWarning)
         warnings.simplefilter("always", load.InputWarning)

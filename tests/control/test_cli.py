@@ -210,7 +210,7 @@ HOSTILE = [  # (argv, exit status, what the one line must say)
 
 
 def _main(argv, capsys):
-    from ti_dk.scene.cli import main
+    from ti_dk.control.cli import main
 
     try:
         status = main([*argv, "--no-progress"])
@@ -497,7 +497,8 @@ def test_signals_stop_cleanly_20_trials(tmp_path, sig):
 HANG = """
 import os, sys
 from ti_dk.control.controller import Controller
-from ti_dk.scene import cli, load
+from ti_dk.control import cli
+from ti_dk.scene import load
 
 def hang(*args, **kw):  # a read that never returns: a FIFO with no writer
     print("waiting", flush=True)
@@ -662,7 +663,7 @@ def test_a_refused_restart_names_each_setting_and_writes_nothing(tmp_path):
 
 def test_long_runs_say_how_long_before_they_start(capsys):
     from ti_dk import load_scene
-    from ti_dk.scene.cli import _announce
+    from ti_dk.control.cli import _announce
 
     _announce(load_scene("void1d", ensemble=4))  # a fraction of a second: nothing said
     assert capsys.readouterr().err == ""
