@@ -84,6 +84,27 @@ def test_subpackages_and_no_import_circles():
         visit(m, [m])
 
 
+LAYERS = ("core", "pools", "methods", "hybrid", "scene", "output", "control")  # each imports only its own and those before
+
+
+def test_subpackages_import_only_their_own_layer_and_those_below():
+    """Every ti_dk import of a module in subpackage X goes to X or a layer below it (none to the top,
+    ``ti_dk/__init__.py`` and ``ti_dk/tradeoff.py``, which sit above every layer). The one exception: a
+    ``__main__`` module is an entry point (``python -m ti_dk.scene`` runs ``ti_dk.control.cli``)."""
+    packages = sorted(p.name for p in PACKAGE.iterdir() if (p / "__init__.py").exists())
+    assert sorted(LAYERS) == packages
+    up = []
+    for path in MODULES:
+        parts = _name(path).split(".")
+        if len(parts) < 2 or path.name == "__main__.py" or parts[1] not in LAYERS:
+            continue
+        for m in sorted(_imports(path)):
+            target = m.split(".")
+            if len(target) < 2 or target[1] not in LAYERS or LAYERS.index(target[1]) > LAYERS.index(parts[1]):
+                up.append(f"{_name(path)} ({parts[1]}) imports {m}")
+    assert not up, "imports up the layers " + " < ".join(LAYERS) + ": " + "; ".join(up)
+
+
 def test_every_import_of_ti_dk_names_a_module_that_exists():
     missing = [f"{_name(p)}: {m}" for p in MODULES for m in _imports(p)
                if not ((ROOT / (m.replace(".", "/") + ".py")).exists() or (ROOT / m.replace(".", "/") / "__init__.py").exists())]
