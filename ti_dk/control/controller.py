@@ -70,7 +70,7 @@ def run(scene: Scene | str | Path, out: str | Path | None = None, progress: bool
     lock on it, so a second run there is refused, and replaces a complete result only with
     ``overwrite`` and only once it has finished (the old one stays whole if it fails or stops).
     A signal seen by :func:`ti_dk.control.signals.stop_on_signals` stops it between steps
-    (:class:`ti_dk.control.signals.Stopped`); an I/O failure raises :class:`ti_dk.output.files.OutputError`; both
+    (:class:`ti_dk.core.errors.Stopped`); an I/O failure raises :class:`ti_dk.OutputError`; both
     leave the file marked incomplete. Taichi runs on the thread that started it, one run at a time:
     a run from another thread, or while another goes, raises :class:`ti_dk.SimulationError`.
     """
