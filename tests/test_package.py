@@ -1,6 +1,8 @@
 """The package as a whole (``ti_dk/__init__.py``): its rooms, their sizes, who imports whom, the
 map of it in ``docs/where-things-are.md``, and what a wheel ships (the scene files)."""
 import ast
+import importlib
+import importlib.util
 import os
 import re
 import shutil
@@ -118,6 +120,34 @@ def test_no_module_reaches_into_another_modules_private_names():
             if isinstance(node, ast.ImportFrom) and (node.level or (node.module or "").startswith("ti_dk")):
                 reaches += [f"{_name(path)}: {a.name}" for a in node.names if a.name.startswith("_")]
     assert not reaches
+
+
+def _resolves(name: str) -> bool:
+    """Whether dotted ``name`` is a module of ti_dk or an object in one, down to its last part: read
+    as attributes from the package down, a module imported only where no attribute has the name (an
+    import binds the module on its package: ``ti_dk.tradeoff`` must stay the function)."""
+    obj = ti_dk
+    for part in name.split(".")[1:]:
+        if hasattr(obj, part):
+            obj = getattr(obj, part)
+        elif hasattr(obj, "__path__") and importlib.util.find_spec(f"{obj.__name__}.{part}") is not None:
+            obj = importlib.import_module(f"{obj.__name__}.{part}")
+        else:
+            return False
+    return True
+
+
+def test_every_dotted_ti_dk_name_in_a_docstring_resolves():
+    """Every ``ti_dk.…`` a docstring names (``:func:`ti_dk.control.options.check_options```, or in
+    prose) is a module or an object that exists: no dead names after a move or a rename."""
+    dead = []
+    for path in MODULES + sorted((ROOT / "studies").rglob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, (ast.Module, ast.ClassDef, ast.FunctionDef, ast.AsyncFunctionDef)):
+                for name in re.findall(r"\bti_dk(?:\.\w+)+", ast.get_docstring(node) or ""):
+                    if "__main__" not in name and not _resolves(name):
+                        dead.append(f"{path.relative_to(ROOT)}: {name}")
+    assert not dead
 
 
 def test_layout_names_every_module_once():

@@ -278,8 +278,9 @@ SCENES = ["doublewell2d", "ellipse2d", "equilibrium1d", "sphere3d", "trap1d", "v
 def test_quick_previews_every_scene_stably_under_its_own_name(tmp_path, name):
     """Every shipped scene's --quick scene loads (a stable C on the coarser grid, said in a line where
     it differs from the scene's) and writes none of the full run's paths."""
+    from ti_dk.control import cli as cli_mod
     from ti_dk.output.claim import Outputs
-    from ti_dk.scene import checks, cli as cli_mod, load
+    from ti_dk.scene import checks, load
 
     full = load.load_scene(name)
     quick, note = cli_mod.quick_scene(name, {}, full)

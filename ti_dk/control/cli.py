@@ -21,6 +21,7 @@ class Parser(argparse.ArgumentParser):
     """argparse with one-line errors (no usage block), as every other input error."""
 
     def error(self, message: str):
+        """Leave with one line and exit status 2."""
         sys.exit(_fail(f"{message}: see {self.prog} --help"))
 
 
@@ -53,6 +54,8 @@ def parser(prog: str, doc: str, out: str, ensemble: str = "number of independent
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    """The command line ``argv`` (default ``sys.argv[1:]``) parsed: :func:`parser`'s arguments and
+    the run's own (``--method``, ``--quick``, frames, snapshots, checkpoints, the executor)."""
     p = parser("python -m ti_dk.scene", __doc__, "output directory for <scene>_<method>.h5 and the rest")
     p.add_argument("--method", help="override the scene's method (" + ", ".join(schema.METHODS) + ")")
     p.add_argument("--overwrite", action="store_true", help="replace a complete result already in --out")
@@ -74,6 +77,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """``python -m ti_dk.scene``: run the scene ``argv`` names; returns the exit status (module
+    docstring)."""
     return guarded(lambda: parse_args(argv), _run)
 
 

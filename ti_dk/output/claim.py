@@ -49,6 +49,7 @@ class Outputs:
 
     @classmethod
     def of(cls, out: str | Path, scene) -> "Outputs":
+        """The outputs of ``scene`` in directory ``out``: files named ``<scene>_<method>``."""
         if str(out) == "":
             raise ConfigError("--out '': give a directory (. for the current one)")
         return cls(Path(out), f"{scene.name}_{scene.method.name}")  # the name is a plain file name (load.py)

@@ -32,6 +32,7 @@ from .schema import (BOUNDARY_KINDS, INIT_AXES, INIT_KEYS, KEYS, MAX_FIELD,
 # loading
 # ---------------------------------------------------------------------------------------
 def available_scenes() -> list[str]:
+    """The names of the shipped scenes, which :func:`load_scene` takes as they are."""
     return sorted(p.stem for p in SCENE_DIR.glob("*.toml"))
 
 
