@@ -57,7 +57,9 @@ def main():
     over = {k.strip(): parse(v.strip(), k.strip()) for k, _, v in (item.partition("=") for item in args.set)}
     for k, m in mods.items():
         sc = m.load_scene(args.scene, **over)
-        solvers[k] = importlib.import_module(k + ".methods.registry").make_solver(sc, sc.initial_ppc)
+        moved = os.path.exists(os.path.join(tmp, k, "control", "registry.py"))  # an older tree: methods/registry.py
+        registry = importlib.import_module(k + (".control" if moved else ".methods") + ".registry")
+        solvers[k] = registry.make_solver(sc, sc.initial_ppc)
     for n in range(3 + args.start):  # compile, then the untimed start
         for s in solvers.values():
             s.step(n)

@@ -17,7 +17,7 @@ import taichi as ti
 
 import ti_dk
 from ti_dk import load_scene
-from ti_dk.methods.registry import make_solver
+from ti_dk.control.registry import make_solver
 
 
 def per_step(solver, reps, blocks=5):

@@ -99,7 +99,7 @@ def run_flat(cells, fraction, ppc, reps):
                        regrid_interval=0, threshold=1e-9, t_equil=None, histogram=None, ensemble=1)
     from bench_hybrid import centred_box
 
-    from ti_dk.methods.registry import make_solver
+    from ti_dk.control.registry import make_solver
 
     s = make_solver(scene, scene.initial_ppc)
     s.set_region(centred_box((cells, cells), fraction)[None], 0)
@@ -132,7 +132,7 @@ def one_layout(name: str, layout: str, side: int | None, threads: int) -> dict:
     import resource
 
     from ti_dk.pools import slots
-    from ti_dk.methods.registry import make_solver
+    from ti_dk.control.registry import make_solver
 
     ti_dk.init("cpu", threads=threads)
     scene_name, overrides, steps = LAYOUT_RUNS[name]

@@ -14,7 +14,7 @@ import time
 import taichi as ti
 
 import ti_dk
-from ti_dk.methods.registry import make_solver
+from ti_dk.control.registry import make_solver
 
 CASES = {  # name: scene overrides (trap1d's start: the Boltzmann profile of its potential)
     "1D, 40 cells": dict(),

@@ -57,7 +57,7 @@ def worker(case, threads, arch, blocks):
 
     import ti_dk
     from ti_dk import load_scene
-    from ti_dk.methods.registry import make_solver
+    from ti_dk.control.registry import make_solver
 
     if case == "numpy":
         return numpy_rate((256, 256), blocks)

@@ -18,7 +18,7 @@ import numpy as np
 import ti_dk
 from ti_dk import load_scene
 from ti_dk.core import theory
-from ti_dk.methods.registry import make_solver
+from ti_dk.control.registry import make_solver
 
 
 def case_v(profile: str, members: int, substeps: int = 1, C: float = 0.125, seed: int = 11):

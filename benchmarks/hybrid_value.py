@@ -39,7 +39,7 @@ from taichi.lang import impl  # noqa: E402
 
 import ti_dk  # noqa: E402
 from ti_dk import load_scene  # noqa: E402
-from ti_dk.methods.registry import make_solver  # noqa: E402
+from ti_dk.control.registry import make_solver  # noqa: E402
 from ti_dk.scene.load import parse_value  # noqa: E402
 
 

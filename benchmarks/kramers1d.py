@@ -29,7 +29,7 @@ import numpy as np
 import ti_dk
 from ti_dk.core import theory
 from ti_dk.output.series import two_state_rate
-from ti_dk.methods.registry import make_solver
+from ti_dk.control.registry import make_solver
 
 FORMULA = "2*(x-0.3)**2*(x-0.7)**2/5e-4"
 BLOB = "exp(-((x-0.3)**2*(x-0.7)**2)/5e-4)*step(x-0.2)*step(0.4-x)"
@@ -64,7 +64,7 @@ def walk_mean(cells: int, dt: float, times: np.ndarray, sub: int = 256) -> np.nd
 def fv_mean(cells: int, dt: float, times: np.ndarray) -> np.ndarray:
     """f(t) of fv's mean: the Scharfetter–Gummel scheme, Dirichlet walls at density 0."""
     from ti_dk.methods.fluxes import bernoulli
-    from ti_dk.scene.expr import Potential
+    from ti_dk.core.expr import Potential
 
     h = 1.0 / cells
     ub = Potential.of(FORMULA, 1).cell_values((cells,), (1.0,), pad=1)

@@ -18,7 +18,7 @@ import warnings
 import ti_dk
 from ti_dk.core import theory
 from ti_dk.output.series import two_state_rate
-from ti_dk.scene.expr import Potential, derivative, numpy_value
+from ti_dk.core.expr import Potential, derivative, numpy_value
 
 U_X = "2*(x-0.3)**2*(x-0.7)**2/5e-4"  # the scene's U along x (its y part is the same in both wells)
 

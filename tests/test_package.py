@@ -1,6 +1,8 @@
 """The package as a whole (``ti_dk/__init__.py``): its rooms, their sizes, who imports whom, the
 map of it in ``docs/where-things-are.md``, and what a wheel ships (the scene files)."""
 import ast
+import importlib
+import importlib.util
 import os
 import re
 import shutil
@@ -84,6 +86,27 @@ def test_subpackages_and_no_import_circles():
         visit(m, [m])
 
 
+LAYERS = ("core", "pools", "methods", "hybrid", "scene", "output", "control")  # each imports only its own and those before
+
+
+def test_subpackages_import_only_their_own_layer_and_those_below():
+    """Every ti_dk import of a module in subpackage X goes to X or a layer below it (none to the top,
+    ``ti_dk/__init__.py`` and ``ti_dk/tradeoff.py``, which sit above every layer). The one exception: a
+    ``__main__`` module is an entry point (``python -m ti_dk.scene`` runs ``ti_dk.control.cli``)."""
+    packages = sorted(p.name for p in PACKAGE.iterdir() if (p / "__init__.py").exists())
+    assert sorted(LAYERS) == packages
+    up = []
+    for path in MODULES:
+        parts = _name(path).split(".")
+        if len(parts) < 2 or path.name == "__main__.py" or parts[1] not in LAYERS:
+            continue
+        for m in sorted(_imports(path)):
+            target = m.split(".")
+            if len(target) < 2 or target[1] not in LAYERS or LAYERS.index(target[1]) > LAYERS.index(parts[1]):
+                up.append(f"{_name(path)} ({parts[1]}) imports {m}")
+    assert not up, "imports up the layers " + " < ".join(LAYERS) + ": " + "; ".join(up)
+
+
 def test_every_import_of_ti_dk_names_a_module_that_exists():
     missing = [f"{_name(p)}: {m}" for p in MODULES for m in _imports(p)
                if not ((ROOT / (m.replace(".", "/") + ".py")).exists() or (ROOT / m.replace(".", "/") / "__init__.py").exists())]
@@ -99,6 +122,34 @@ def test_no_module_reaches_into_another_modules_private_names():
     assert not reaches
 
 
+def _resolves(name: str) -> bool:
+    """Whether dotted ``name`` is a module of ti_dk or an object in one, down to its last part: read
+    as attributes from the package down, a module imported only where no attribute has the name (an
+    import binds the module on its package: ``ti_dk.tradeoff`` must stay the function)."""
+    obj = ti_dk
+    for part in name.split(".")[1:]:
+        if hasattr(obj, part):
+            obj = getattr(obj, part)
+        elif hasattr(obj, "__path__") and importlib.util.find_spec(f"{obj.__name__}.{part}") is not None:
+            obj = importlib.import_module(f"{obj.__name__}.{part}")
+        else:
+            return False
+    return True
+
+
+def test_every_dotted_ti_dk_name_in_a_docstring_resolves():
+    """Every ``ti_dk.…`` a docstring names (``:func:`ti_dk.control.options.check_options```, or in
+    prose) is a module or an object that exists: no dead names after a move or a rename."""
+    dead = []
+    for path in MODULES + sorted((ROOT / "studies").rglob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, (ast.Module, ast.ClassDef, ast.FunctionDef, ast.AsyncFunctionDef)):
+                for name in re.findall(r"\bti_dk(?:\.\w+)+", ast.get_docstring(node) or ""):
+                    if "__main__" not in name and not _resolves(name):
+                        dead.append(f"{path.relative_to(ROOT)}: {name}")
+    assert not dead
+
+
 def test_layout_names_every_module_once():
     page = (ROOT / "docs" / "where-things-are.md").read_text()
     layout = page[page.index("## Layout"):]
@@ -108,8 +159,8 @@ def test_layout_names_every_module_once():
 
 
 def test_public_api_is_importable_from_the_top():
-    for name in ("load_scene", "run", "tradeoff", "init", "Scene", "Result", "ConfigError", "SimulationError",
-                 "available_scenes"):
+    for name in ("load_scene", "run", "tradeoff", "init", "Scene", "Result", "ConfigError", "OutputError",
+                 "SimulationError", "available_scenes", "make_solver"):
         assert getattr(ti_dk, name) is not None
     # not shadowed by a subpackage or module of that name (ti_dk/tradeoff.py is the command line)
     assert callable(ti_dk.run) and callable(ti_dk.load_scene) and callable(ti_dk.tradeoff)

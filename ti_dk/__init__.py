@@ -18,15 +18,16 @@ if any(f" -m ti_dk.{m} " in f" {' '.join(getattr(sys, 'orig_argv', []))} " for m
 os.environ.setdefault("ENABLE_TAICHI_HEADER_PRINT", "False")
 
 from .scene.load import available_scenes, load_scene  # noqa: E402
-from .scene.schema import ConfigError, Scene  # noqa: E402
+from .core.errors import ConfigError, OutputError, SimulationError  # noqa: E402
+from .scene.schema import Scene  # noqa: E402
 from .output.files import package_version  # noqa: E402
 from .control.runtime import Result, init  # noqa: E402
-from .control.signals import SimulationError  # noqa: E402
 from .control.controller import run  # noqa: E402
+from .control.registry import make_solver  # noqa: E402
 from .control.tradeoff import tradeoff  # noqa: E402  (python -m ti_dk.tradeoff is the module ti_dk/tradeoff.py)
 from .output.series import crossing_rate  # noqa: E402
 
 __version__ = package_version()  # from pyproject.toml, through the installed metadata
 
-__all__ = ["ConfigError", "Result", "Scene", "SimulationError", "available_scenes", "crossing_rate", "init",
-           "load_scene", "run", "tradeoff"]
+__all__ = ["ConfigError", "OutputError", "Result", "Scene", "SimulationError", "available_scenes", "crossing_rate",
+           "init", "load_scene", "make_solver", "run", "tradeoff"]

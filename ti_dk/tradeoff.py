@@ -17,11 +17,13 @@ import argparse
 import sys
 
 from .control import runtime
+from .control.cli import guarded, parser, scene_of, warn
 from .control.tradeoff import ABOVE, BELOW, BUDGET, Candidate, tradeoff
-from .scene.cli import guarded, parser, scene_of, warn
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    """The command line ``argv`` (default ``sys.argv[1:]``) parsed: the scene's arguments and the
+    pilot's (the target, ``--try``, the pilot's size and horizon, the cells and times scored)."""
     p = parser("python -m ti_dk.tradeoff", __doc__, "output directory for tradeoff.csv, .h5, .png and the pick",
                ensemble="the ensemble you plan to run: errors are in its standard errors (default: the scene's)")
     target = p.add_mutually_exclusive_group()
@@ -62,6 +64,8 @@ def _run(args: argparse.Namespace) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """``python -m ti_dk.tradeoff``: the pilot on the scene ``argv`` names; returns the exit status
+    (module docstring)."""
     return guarded(lambda: parse_args(argv), _run)
 
 

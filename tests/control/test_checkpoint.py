@@ -9,7 +9,7 @@ import pytest
 import ti_dk
 from ti_dk import load_scene, run
 from ti_dk.control.checkpoint import content_digest, read_checkpoint
-from ti_dk.methods.registry import make_solver
+from ti_dk.control.registry import make_solver
 
 
 # -- damaged checkpoints: every edit is refused with one line before anything is loaded ---------

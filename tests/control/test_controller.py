@@ -130,7 +130,7 @@ def test_a_run_far_past_its_estimate_says_so_once(monkeypatch, capsys):
 
 # -- the extremes: each runs correctly or is refused with a message, never a silent NaN ------
 def _steps(scene, steps, check=None):
-    from ti_dk.methods.registry import make_solver
+    from ti_dk.control.registry import make_solver
 
     s = make_solver(scene, scene.initial_ppc)
     mass = [s.diagnostics()["mass"] if scene.method.name != "particle" else None]
@@ -188,7 +188,7 @@ def test_extreme_particle_regions_conserve(region):
     boundary = [["neumann", "neumann"], "periodic"] if region == "on a Neumann wall" else "periodic"
     scene = load_scene("equilibrium1d", method="hybrid", cells=[10, 8], lengths=[1.0, 2.0], ppc=4,
                        regrid_interval=0, threshold=1, boundary=boundary, ensemble=2, t_equil=None, histogram=None)
-    from ti_dk.methods.registry import make_solver
+    from ti_dk.control.registry import make_solver
 
     s = make_solver(scene, scene.initial_ppc)
     m = np.zeros((10, 8), dtype=bool)
@@ -223,7 +223,7 @@ def test_a_hundred_thousand_steps():
     """Mass drift over 10^5 steps, read every 10th step; the density is checked once at the end (a
     NaN or inf, once made, stays, and makes the mass NaN). Reading the density at every step made
     this test 130 s on a 2.45 GHz core, nearly all of it the reads."""
-    from ti_dk.methods.registry import make_solver
+    from ti_dk.control.registry import make_solver
 
     scene = load_scene("equilibrium1d", ppc=50, cells=[20], C=0.25, ensemble=2, t_equil=None, histogram=None)
     s = make_solver(scene, scene.initial_ppc)

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from ti_dk import load_scene
-from ti_dk.methods.registry import make_solver
+from ti_dk.control.registry import make_solver
 from ti_dk.scene.schema import ClampWarning
 
 

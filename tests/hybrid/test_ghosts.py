@@ -7,7 +7,7 @@ from ti_dk import load_scene
 from ti_dk.scene.schema import ClampWarning
 from ti_dk.hybrid.ghosts import REGRID_BIRTH
 from ti_dk.core import theory
-from ti_dk.methods.registry import make_solver
+from ti_dk.control.registry import make_solver
 
 
 @pytest.mark.parametrize("layout", ["flat", "pointer"])

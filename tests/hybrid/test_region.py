@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 
 from ti_dk import load_scene
+from ti_dk.control.registry import make_solver
 from ti_dk.core.grid import DIRICHLET, NEUMANN, PERIODIC, Grid
 from ti_dk.hybrid.region import Region
 from ti_dk.hybrid.regrid import RegridParams, mask
-from ti_dk.methods.registry import make_solver
 
 
 def _ring_reference(covered, boundary):

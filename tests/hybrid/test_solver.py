@@ -8,7 +8,7 @@ import pytest
 from ti_dk import load_scene, run
 from ti_dk.core import theory
 from ti_dk.scene.schema import ClampWarning
-from ti_dk.methods.registry import make_solver
+from ti_dk.control.registry import make_solver
 
 from ..helpers import as_counts, digest_on_threads, tail_scores, trap_tails
 
@@ -312,7 +312,7 @@ import hashlib, sys
 import numpy as np
 import ti_dk
 from ti_dk import load_scene
-from ti_dk.methods.registry import make_solver
+from ti_dk.control.registry import make_solver
 threads = int(sys.argv[1])
 ti_dk.init("cpu", threads=threads)
 SUMS = ("mass",)  # a parallel float sum: its rounding follows the threads (not hashed)

@@ -7,10 +7,10 @@ import numpy as np
 import pytest
 
 from ti_dk import ConfigError, load_scene, run
+from ti_dk.control.registry import make_solver
 from ti_dk.core import theory
 from ti_dk.core.grid import Grid
 from ti_dk.methods.fluxes import bernoulli, drift_coefficients, stability_number
-from ti_dk.methods.registry import make_solver
 
 from ..helpers import KEYS, as_counts, check_moments, fv_mean_step
 
@@ -151,8 +151,8 @@ def test_the_mean_follows_the_drift_scheme_face_by_face(cells, boundary):
 def test_the_fused_1d_step_carries_the_same_drift(boundary):
     """fv's per-member 1D kernel and the hybrid's ``advance``, with a potential:
     the same states to a few ulp (fast-math may fold the constants of each differently)."""
-    from ti_dk.methods.fv import SPDESolver
     from ti_dk.core.rng import seed_key
+    from ti_dk.methods.fv import SPDESolver
 
     scene = load_scene("trap1d", cells=[37], boundary=boundary, init="uniform", reservoir_ppc=3.0)
     grid = Grid.from_scene(scene)

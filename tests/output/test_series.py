@@ -10,8 +10,8 @@ import pytest
 
 import ti_dk
 from ti_dk.core import theory
+from ti_dk.core.expr import derivative, numpy_value
 from ti_dk.output.series import crossing_rate, mean_se, two_state_rate
-from ti_dk.scene.expr import derivative, numpy_value
 
 FORMULA = "2*(x-0.3)**2*(x-0.7)**2/5e-4"  # doublewell2d's potential along x (kramers1d.py)
 BLOB = "exp(-((x-0.3)**2*(x-0.7)**2)/5e-4)*step(x-0.2)*step(0.4-x)"  # its start along x

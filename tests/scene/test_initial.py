@@ -5,8 +5,8 @@ import numpy as np
 import pytest
 
 from ti_dk import ConfigError, load_scene
+from ti_dk.core.expr import Potential
 from ti_dk.scene import initial
-from ti_dk.scene.expr import Potential
 from ti_dk.scene.load import make_scene
 
 

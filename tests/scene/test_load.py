@@ -135,19 +135,6 @@ def test_memory_and_work_estimates():
         load_scene("ellipse2d", **big)
 
 
-def test_options_are_checked_before_anything_starts(tmp_path):
-    from ti_dk.scene.load import check_options
-
-    s = load_scene("void1d", ensemble=2)
-    check_options(s, out=tmp_path / "new" / "dir", executor="dask", workers=2, chunk=1)
-    (tmp_path / "f").write_text("")
-    for kw, msg in [(dict(out=tmp_path / "f"), "is a file"), (dict(threads=0), "--threads = 0"),
-                    (dict(executor="dask", workers=0), "--workers = 0"), (dict(chunk=3), "--chunk is for"),
-                    (dict(restart=tmp_path / "none.h5"), "no such checkpoint")]:
-        with pytest.raises(ConfigError, match=msg):
-            check_options(s, **kw)
-
-
 def test_python_callers_may_pass_tuples_and_numpy_numbers():
     import numpy as np
 
@@ -211,7 +198,7 @@ def test_a_fifo_given_as_an_input_file_is_refused_at_once(tmp_path, what):
     """A FIFO with no writer as the scene file, as density_file (.npy, file.h5:/q) or as --restart."""
     import os
 
-    from ti_dk.scene.load import check_options
+    from ti_dk.control.options import check_options
 
     fifo = tmp_path / {"scene": "s.toml", "npy": "q.npy", "h5": "q.h5", "restart": "c.h5"}[what]
     os.mkfifo(fifo)

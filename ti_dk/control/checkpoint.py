@@ -12,7 +12,8 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from ..scene.schema import ConfigError, Scene
+from ..core.errors import ConfigError
+from ..scene.schema import Scene
 from ..output.files import (atomic_h5, package_version, read_group, read_rows, require_space, same_scene, scene_json,
                             write_group, write_rows)
 from ..methods.solver import Solver

@@ -15,15 +15,17 @@ from tqdm import tqdm
 from .checkpoint import Progress, read_checkpoint
 from ..scene.estimates import work_estimate
 from ..scene.checks import check_initial
-from ..scene.load import check_options, scene_of
+from ..scene.load import scene_of
+from .options import check_options
 from ..scene.schema import Scene
 from .handlers import Checkpoints, Clock, Diagnostics, Frames, Observations, Snapshots, Statistics
 from ..output.claim import Outputs
 from ..output.files import RunFile, is_complete, output_error
 from ..output.series import summary_lines
-from ..methods.registry import make_solver  # also where tests and benchmarks build a solver
+from .registry import make_solver  # also where tests and benchmarks build a solver
 from .runtime import Result, init, initialized, started_here, stats_of
-from .signals import SimulationError, check_stop
+from ..core.errors import SimulationError
+from .signals import check_stop
 from ..methods.solver import Solver
 
 COMPARED = ("mass", "min_density", "negative_cells")  # diagnostics of the method run alongside, as compare_*
@@ -68,7 +70,7 @@ def run(scene: Scene | str | Path, out: str | Path | None = None, progress: bool
     lock on it, so a second run there is refused, and replaces a complete result only with
     ``overwrite`` and only once it has finished (the old one stays whole if it fails or stops).
     A signal seen by :func:`ti_dk.control.signals.stop_on_signals` stops it between steps
-    (:class:`ti_dk.control.signals.Stopped`); an I/O failure raises :class:`ti_dk.output.files.OutputError`; both
+    (:class:`ti_dk.core.errors.Stopped`); an I/O failure raises :class:`ti_dk.OutputError`; both
     leave the file marked incomplete. Taichi runs on the thread that started it, one run at a time:
     a run from another thread, or while another goes, raises :class:`ti_dk.SimulationError`.
     """

@@ -18,8 +18,9 @@ import numpy as np
 from tqdm import tqdm
 
 from . import controller, runtime, signals
-from ..scene.load import check_options
-from ..scene.schema import ConfigError, Scene
+from .options import check_options
+from ..core.errors import ConfigError
+from ..scene.schema import Scene
 from ..output.claim import Outputs
 from ..output.files import (RunFile, atomic_h5, output_error, read_group, read_rows, same_scene, scene_json, write_group,
                  write_rows)
@@ -61,7 +62,7 @@ def run(scene: Scene, executor: str = "local", out: str | Path | None = None, pr
     cells, over the workers for larger ones); ``workers`` and
     ``threads`` size the LocalCluster started on this machine unless ``scheduler`` (an address
     such as ``tcp://host:8786``, e.g. from dask-jobqueue) names an existing cluster. The output
-    is claimed as :func:`ti_dk.controller.run` claims it (one run at a time, ``overwrite`` to replace a
+    is claimed as :func:`ti_dk.run` claims it (one run at a time, ``overwrite`` to replace a
     complete result); a signal seen by :func:`ti_dk.control.signals.stop_on_signals` stops it between chunks.
     """
     if executor not in EXECUTORS:

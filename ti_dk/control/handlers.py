@@ -90,6 +90,7 @@ class Statistics:
             rf.write_rows(self.times, self.rows)
 
     def due(self, n: int) -> bool:
+        """Whether step ``n`` takes a row: an output or frame step; stationary, a pooled sample or the last step."""
         if self.stationary:
             return self._sampled(n) or n == self.scene.n_steps
         return n in self.outputs or n in self.extra
@@ -98,6 +99,8 @@ class Statistics:
         return n >= self.n_equil and (n - self.n_equil) % self.scene.stats.sample_every == 0
 
     def write(self, n: int) -> None:
+        """Take step ``n``'s row (stationary: pool its sample, the row at the last step); at an
+        output step keep it and write it to the run file."""
         sc = self.scene
         if self.stationary:
             if self._sampled(n):
@@ -160,9 +163,12 @@ class Observations:
         self.done = 0  # records in the file
 
     def due(self, n: int) -> bool:
+        """Every ``observe_every`` steps, step 0 and the last."""
         return n % self.scene.observe_every == 0 or n == self.scene.n_steps
 
     def write(self, n: int) -> None:
+        """Record step ``n`` per member: mass, negative cells, the region's particles and cells, each
+        observable's count."""
         q = self.solver.density() * self.scene.grid.cell_volume  # particles per cell, (members, *cells)
         axes = tuple(range(1, q.ndim))
         record = {"time": n * self.scene.dt, "mass": q.sum(axis=axes), "negative_cells": (q < 0).sum(axis=axes)}
@@ -203,12 +209,16 @@ class Diagnostics:
             self.diag.setdefault(k, []).append(v)
 
     def due(self, n: int) -> bool:
+        """Every step of a run with a run file (:meth:`flush` decides whether it writes)."""
         return self.rf is not None
 
     def write(self, n: int) -> None:
+        """Flush: at once where step ``n`` took a statistics row, else when :meth:`flush` is due."""
         self.flush(force=self.statistics.row_at(n) is not None)
 
     def flush(self, force: bool = False) -> None:
+        """Write the steps not yet in the run file, and the observations' records, with ``force`` or
+        when ``FLUSH_SECONDS`` have passed since the last write."""
         if self.rf is None or not (force or time.monotonic() - self.last > FLUSH_SECONDS):
             return
         n = len(self.diag["time"])
@@ -236,9 +246,11 @@ class Frames:
             writer.files = [frame_file(writer.dir, k) for k in range(len(log["time"]))]
 
     def due(self, n: int) -> bool:
+        """Whether step ``n`` gets a frame."""
         return self.writer is not None and n in self.steps
 
     def write(self, n: int) -> None:
+        """Draw step ``n``'s frame; log its time and negative cells."""
         t = n * self.scene.dt
         self.log["time"].append(t)
         if self.scene.grid.dim == 1:
@@ -263,6 +275,7 @@ class Frames:
         return panels
 
     def files(self) -> list[Path]:
+        """The frame files, those of the run before a restart included."""
         return list(self.writer.files) if self.writer else []
 
     def table(self) -> list[dict]:
@@ -281,9 +294,11 @@ class Snapshots:
         self.steps = set(scene.output_steps)  # the steps that get a snapshot
 
     def due(self, n: int) -> bool:
+        """Whether step ``n`` is an output step (and snapshots are written)."""
         return self.directory is not None and n in self.steps
 
     def write(self, n: int) -> None:
+        """Member 0 at step ``n`` as an openPMD snapshot."""
         s, sc = self.solver.snapshot(0), self.scene
         write_openpmd(self.directory, n, n * sc.dt, sc.dt, sc.grid, s.density, s.region, s.positions,
                       None if s.pid is None else pack_ids(s.pid), s.boxes, (sc.output.length_si, sc.output.diffusion_si))
@@ -303,9 +318,11 @@ class Checkpoints:
         self.latest = latest  # the newest checkpoint on disk (the one restarted from, at first)
 
     def due(self, n: int) -> bool:
+        """Every ``every`` steps, neither at step 0 nor at the last."""
         return self.path is not None and 0 < n < self.scene.n_steps and n % self.every == 0
 
     def write(self, n: int) -> None:
+        """The diagnostics flushed, then the checkpoint of step ``n`` written over the last one."""
         # diagnostics first: a run killed right after the checkpoint lands must find them in the run
         # file up to its step (test_a_killed_run_keeps_its_diagnostics_up_to_the_last_flush)
         self.diagnostics.flush(force=True)

@@ -11,7 +11,8 @@ from pathlib import Path
 import numpy as np
 import taichi as ti
 
-from ..scene.schema import ConfigError, Scene
+from ..core.errors import ConfigError
+from ..scene.schema import Scene
 
 ARCHS = {"cpu": ti.cpu, "cuda": ti.cuda}  # the backends a run may ask for, by their --arch name
 
@@ -62,8 +63,7 @@ def _keep_freed_memory() -> None:
     megabytes each in 3D). By default glibc maps each afresh and unmaps it when freed, so every
     one is paid again in page faults, which on virtual machines are slow and erratic (the same
     work took ten times longer one time than the next). With no mmap below 1 GiB and no trimming,
-    freed memory stays in the process and is reused (the regrid timings before and after are in
-    ``benchmarks/RESULTS.md``).
+    freed memory stays in the process and is reused.
     Only where the C library is glibc (``mallopt`` exists); elsewhere nothing changes."""
     try:
         libc = ctypes.CDLL("libc.so.6")
@@ -81,7 +81,7 @@ def _plain_source_positions() -> None:
     the node, both wrapped to 80 columns by ``textwrap``, even when nothing fails and the kernel
     then comes from the offline cache (the frontend runs on every start). Symptom: a start-up with
     a warm kernel cache spends about a second in ``get_pos_info`` (``textwrap`` is the largest
-    Python cost of the start-up; ``benchmarks/RESULTS.md``). A compilation error still names the
+    Python cost of the start-up). A compilation error still names the
     file, line and kernel."""
     from taichi.lang.ast import ast_transformer_utils as utils
 

@@ -1,4 +1,4 @@
-"""Stopping a run on a signal, and the errors a run ends with; no heavy import, so that the command
+"""Stopping a run on a signal (:class:`~ti_dk.core.errors.Stopped`); no heavy import, so that the command
 line can install its handlers before anything else (:func:`catch_early`)."""
 from __future__ import annotations
 
@@ -8,19 +8,7 @@ import signal
 import threading
 from pathlib import Path
 
-
-class SimulationError(RuntimeError):
-    """The run went wrong in a way the user can fix (unstable scheme, too many particles)."""
-
-
-class Stopped(SimulationError):
-    """SIGTERM, SIGINT or SIGHUP arrived: the run stopped between two steps, its output closed and
-    marked incomplete. ``status``: the exit status a shell gives for that signal (143, 130, 129)."""
-
-    def __init__(self, message: str, status: int):
-        super().__init__(message)
-        self.status = status  # 128 + the signal's number
-
+from ..core.errors import Stopped
 
 # set by the handlers of stop_on_signals(), read between steps; "at_once": end in the handler itself
 _STOP: dict = {"signal": None, "at_once": False}

@@ -29,7 +29,8 @@ from ..core import bias
 from ..output import tradeoff as write
 from ..scene.estimates import work_estimate
 from ..scene.load import command_overrides, load_scene, make_scene
-from ..scene.schema import ConfigError, Scene
+from ..core.errors import ConfigError
+from ..scene.schema import Scene
 
 REFERENCE = "particle"
 BUDGET = 120.0  # seconds the pilot may take by the work estimates, when its ensemble is not given
@@ -96,6 +97,9 @@ class Tradeoff:
         return "\n".join(lines)
 
     def answer(self) -> str:
+        """The pick against the target, as printed: its cost and error (the particle method where
+        no setting meets it), a doubt the pilot's uncertainty leaves, cheaper settings that might
+        meet it too, and those the pilot cannot tell from it."""
         row = next(r for r in self.rows if r["label"] == self.pick)
         what = f"error ≤ {self.target:g}" + (" SE" if self.measure == "z" else " (relative)")
         if self.pick == REFERENCE:

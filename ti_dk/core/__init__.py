@@ -1,2 +1,3 @@
-"""Numerics every method shares: the grid and its boundaries, counter-based random numbers,
-streaming moments, and the exact answers the tests and figures compare with."""
+"""What every layer shares: the grid and its boundaries, counter-based random numbers, streaming
+moments, the formulas and the external potential that kernels compile (:mod:`.expr`), the errors
+(:mod:`.errors`), and the exact answers the tests and figures compare with."""

@@ -19,14 +19,17 @@ class Geometry:
 
     @property
     def dim(self) -> int:
+        """Dimensions: 1, 2 or 3."""
         return len(self.cells)
 
     @property
     def dx(self) -> tuple[float, ...]:
+        """Cell size along each axis."""
         return tuple(L / n for L, n in zip(self.lengths, self.cells))
 
     @property
     def cell_volume(self) -> float:
+        """Volume (1D: length, 2D: area) of a cell."""
         return math.prod(self.dx)
 
 
@@ -36,7 +39,7 @@ class Grid(Geometry):
 
     ``boundary[a] = (lo, hi)`` holds the boundary kind of each side of axis ``a``;
     ``reservoir[a]`` the Dirichlet reservoir number density of each side (particles per volume);
-    ``potential`` the external potential U (a :class:`ti_dk.scene.expr.Potential`, or None).
+    ``potential`` the external potential U (a :class:`ti_dk.core.expr.Potential`, or None).
     """
 
     cells: tuple[int, ...]
@@ -47,6 +50,8 @@ class Grid(Geometry):
 
     @classmethod
     def from_scene(cls, scene) -> "Grid":
+        """The grid of a :class:`~ti_dk.scene.schema.Scene`: its boundary kinds as codes, its
+        reservoirs as number densities, its potential."""
         vol = math.prod(L / n for L, n in zip(scene.grid.lengths, scene.grid.cells))
         return cls(
             cells=scene.grid.cells,
@@ -68,6 +73,7 @@ class Grid(Geometry):
 
     @property
     def has_dirichlet(self) -> bool:
+        """Whether any side is a Dirichlet reservoir."""
         return any(DIRICHLET in sides for sides in self.boundary)
 
 
@@ -84,7 +90,7 @@ def row_spread(rows: int) -> int:
     range into one contiguous block per thread of at least 512 iterations, so a loop over the 256
     rows of a 256² grid ran on one thread however many there were. Cutting the rows into pieces
     cost a thread 15 % (the piece's start is not known when the row loop is compiled); empty
-    iterations cost nothing measurable (``benchmarks/RESULTS.md``)."""
+    iterations cost nothing measurable."""
     cfg = ti.lang.impl.current_cfg()
     if cfg.arch != ti.cpu or cfg.cpu_max_num_threads < 2:
         return 1
@@ -105,7 +111,7 @@ def exclusive_scan(a: ti.template(), e, n):
     Call it from a loop under ``ti.loop_config(serialize=True)``, as every short loop of a kernel
     (over a few members) should be: a parallel loop is a task of Taichi's CPU thread pool, whose
     start and end cost tens of microseconds whatever the loop does, and a hybrid step runs some
-    twenty of them (launch costs: ``benchmarks/RESULTS.md``)."""
+    twenty of them."""
     total = 0
     for k in range(n):
         c = a[e, k]

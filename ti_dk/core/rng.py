@@ -7,9 +7,8 @@ the launch order or the backend, unlike ``ti.random``.
 The normal is the inverse normal CDF of the word, by table: the word's 31 low bits fall in one
 of 23 octaves, each cut into 32 segments on which Φ⁻¹ is a cubic (absolute error < 1e-9, fitted
 at import of the table from :class:`statistics.NormalDist`); the deepest tail (p < 2⁻²⁴, one word
-in 2²³) uses Acklam's tail formula. This replaced Acklam's rational approximation everywhere
-(issue 13: a table load and three multiply-adds instead of two degree-5 polynomials and a
-division), which changed every noise stream once.
+in 2²³) uses Acklam's tail formula. The table costs a load and three multiply-adds where Acklam's
+rational approximation takes two degree-5 polynomials and a division.
 
 References: Salmon et al., "Parallel random numbers: as easy as 1, 2, 3" (SC'11) for Philox;
 P. J. Acklam's rational approximation of the inverse normal CDF (relative error < 1.15e-9).
@@ -54,9 +53,9 @@ def lanes(dim: int, flux: bool = False) -> int:
     ``dim`` dimensions: 2 in 3D, where a counter serves one particle or cell, and 1 in 1D and 2D,
     where it already serves 2–4, except the 2D flux loop: 2. A call is a chain of dependent
     multiplies, so with one at a time the loop waits on it, and two independent ones run side by
-    side in the core. That paid in 3D (walk and flux pass); in 1D and 2D it gained nothing or lost
-    (the LANES measurements in ``benchmarks/RESULTS.md``), and every lane is a copy of the loop
-    body to compile, until the 2D flux loop went along rows (issue 26: −12 % of its step)."""
+    side in the core. That pays in 3D (walk and flux pass) and in the 2D flux loop, which goes
+    along rows; elsewhere in 1D and 2D it gains nothing or loses, and every lane is a copy of the
+    loop body to compile."""
     return 2 if dim == 3 or (flux and dim == 2) else 1
 
 
@@ -67,9 +66,9 @@ def device_key(key: tuple[int, int], member0: int = 0) -> ti.Field:
 
     A key of literals is baked into every kernel that draws, so the offline cache compiles them
     all anew for each seed: a warm cache of the same scene with another seed cost sphere3d at 64³
-    13.4 s of compilation in its first step instead of 2.0 (benchmarks/RESULTS.md). Read from a
+    13.4 s of compilation in its first step instead of 2.0. Read from a
     field, one compiled kernel serves every seed, and every chunk of an ensemble (``member0``).
-    Solvers built by ``make_solver`` get this form.
+    Solvers built by :func:`ti_dk.make_solver` get this form.
     """
     f = ti.field(ti.u32, shape=3)  # the two Philox key words of the run, then the first member's global index
     f.from_numpy(np.array([w & 0xFFFFFFFF for w in (*key, member0)], dtype=np.uint32))

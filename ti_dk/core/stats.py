@@ -58,6 +58,7 @@ class Moments:
         return {"n": np.int64(self.n), "mean": self.mean, "m2": self.m2, "m3": self.m3, "m4": self.m4}
 
     def load_state(self, st: dict[str, np.ndarray]) -> None:
+        """Continue from a :meth:`state`."""
         self.n, self.mean, self.m2, self.m3, self.m4 = int(st["n"]), st["mean"], st["m2"], st["m3"], st["m4"]
 
     @property
@@ -149,6 +150,7 @@ class CellStats:
         return st
 
     def load_state(self, st: dict[str, np.ndarray]) -> None:
+        """Continue from a :meth:`state`."""
         self.moments.load_state(st)
         if self.histogram is not None:
             self.histogram.counts, self.histogram.outside = st["hist_counts"], st["hist_outside"]
@@ -156,6 +158,8 @@ class CellStats:
             self.spectrum.moments.load_state({k[3:]: v for k, v in st.items() if k.startswith("sf_")})
 
     def row(self) -> dict[str, np.ndarray]:
+        """The statistics row so far: the four moments per cell, the sample count, the histogram and
+        S(k) where kept, and the accumulators (``acc_*``) that :meth:`merge_row` adds."""
         m = self.moments
         row = {"mean": m.mean, "variance": m.variance, "skewness": m.skewness, "kurtosis": m.kurtosis,
                "n_samples": np.int64(m.n)}

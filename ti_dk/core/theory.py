@@ -333,7 +333,7 @@ def _fine_step(cells: int, sub: int, length: float, dt: float, nodes: int = 64) 
 
 def hybrid_mean_1d(ppc0: np.ndarray, region: np.ndarray, dt: float, steps: int, length: float = 1.0,
                    ghost_profile: str = "mean", sub: int = 128) -> np.ndarray:
-    r"""Expected particles per cell of the hybrid (:class:`ti_dk.hybrid.HybridSolver`, periodic 1D,
+    r"""Expected particles per cell of the hybrid (:class:`ti_dk.hybrid.solver.HybridSolver`, periodic 1D,
     the particle region ``region`` fixed, one particle step per SPDE step) after ``steps`` steps:
     the exact mean of the *algorithm*, beside the exact mean of the particles
     (:func:`particle_counts_periodic`); their difference is the coupling's own bias.
@@ -394,7 +394,7 @@ def walk_crossing_fraction(u_prime, start: np.ndarray, dt: float, times, split: 
     each bin (a sparse transition matrix). The clamp at ±Δx is left out (its probability,
     ``erfc((Δx − |½U'|Δt)/√(2Δt))``, is ≈ 1e-12 for the double well at 32 cells and C = 0.02).
     ``u_prime``: the NumPy-vectorised U'(x) [kT/L]; ``times``: where f is taken (multiples of Δt).
-    Benchmarked in ``benchmarks/kramers1d.py`` (rate 0.1120 at 32 cells, C = 0.02, RESULTS.md)."""
+    Compared with the particles in ``benchmarks/kramers1d.py`` (rate 0.1120 at 32 cells, C = 0.02)."""
     import scipy.sparse as sparse
     from scipy.special import ndtr
 

@@ -271,7 +271,7 @@ def drift_coefficients(grid) -> np.ndarray:
     flux ``½ (c_R q_R − c_L q_L)/Δx_a = ½ e^{−U_f} Δ(q e^{Ū})/Δx_a`` with ``e^{−U_f}`` the
     reciprocal logarithmic mean of ``e^{Ū}`` on the two sides: exact for a potential linear across
     the face, and zero on ``q ∝ e^{−Ū}`` at any Péclet number. ``Ū`` is
-    :meth:`~ti_dk.scene.expr.Potential.cell_values` (cell averages of e^{−U}, so the discrete
+    :meth:`~ti_dk.core.expr.Potential.cell_values` (cell averages of e^{−U}, so the discrete
     equilibrium is the cell-averaged Boltzmann profile); a reservoir cell beyond a Dirichlet side
     has its own Ū; periodic sides wrap. Weights of faces that carry no flux (Neumann, the padded
     layer of other axes) are 1."""

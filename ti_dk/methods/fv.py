@@ -29,12 +29,10 @@ class SPDESolver(Fluxes, Solver):
     keyed on (seed, member, step, face), so a face's noise is the same whoever computes it: one
     Philox-4x32-10 counter serves ``G = 4 // dim`` consecutive cells along the last axis (4 in 1D,
     2 in 2D, 1 in 3D), word ``g·dim + a`` driving the lower face along axis ``a`` of the group's
-    cell ``g``, so all four words are used in 1D and 2D (three in 3D). This numbering replaced one
-    counter per cell (issue 13); it changed the 1D and 2D noise streams, not the 3D one.
+    cell ``g``, so all four words are used in 1D and 2D (three in 3D).
     For the finite-volume scheme ``√max(q, 0)`` is taken on both sides of each face as the flux is
-    made (as fast as loading roots made by a pass before, which saves that pass and its field:
-    ``benchmarks/RESULTS.md``); for the Gaussian scheme q̄'s roots are taken once per cell for all
-    members.
+    made (as fast as loading roots made by a pass before, which saves that pass and its field);
+    for the Gaussian scheme q̄'s roots are taken once per cell for all members.
 
     Boundaries: periodic faces wrap; Neumann faces carry no flux; a Dirichlet face sees a ghost
     cell at the reservoir density (for q and for q̄).
@@ -45,6 +43,30 @@ class SPDESolver(Fluxes, Solver):
     weights per face in :attr:`coef`), for q and q̄ alike, so the deterministic scheme keeps the
     cell-averaged Boltzmann profile e^{−Ū} stationary to round-off; the noise is unchanged. A
     reservoir cell beyond a Dirichlet side holds ``reservoir_ppc`` particles at its own Ū.
+
+    Parameters
+    ----------
+    grid : Grid
+        The cells, their boundaries and reservoirs, and the potential.
+    dt : float
+        The time step.
+    ensemble : int
+        Independent members, stepped together.
+    key : ti.Field or tuple of int
+        The run's Philox key, as :func:`ti_dk.core.rng.device_key` makes it (two words of a
+        :func:`~ti_dk.core.rng.seed_key` also serve, compiled into the kernels).
+    real : Taichi type
+        ``ti.f64`` or ``ti.f32``: the precision of q, q̄ and the fluxes.
+    gaussian : bool
+        The linearised Gaussian scheme (eq. 11) instead of the finite-volume one (eq. 7).
+    member0 : int
+        The global index of member 0: a member's noise depends on it, not on how the ensemble
+        is cut into chunks.
+    track_mean : bool
+        Advance q̄ (eq. 10) beside q for another reader (the hybrid's ghosts); the Gaussian scheme
+        always does.
+
+    Build it with :func:`ti_dk.make_solver`, which also initialises it.
     """
 
     def __init__(self, grid: Grid, dt: float, ensemble: int, key: tuple[int, int], real=ti.f64, gaussian: bool = False,
@@ -102,7 +124,7 @@ class SPDESolver(Fluxes, Solver):
         such cells on both sides. Every other cell's q and every other face's flux keep their bits
         (each face's noise is keyed on the face); q̄ may round differently in the last bit (fast
         math compiles the kernel anew). Call before the first step (the kernels compile the
-        choice in). In a 3D hybrid a large share of the cells are such (``benchmarks/RESULTS.md``)."""
+        choice in). In a 3D hybrid a large share of the cells are such."""
         self.replaced = mask
 
     @property
@@ -122,6 +144,7 @@ class SPDESolver(Fluxes, Solver):
         return {"q": self.q.to_numpy(), **({"qbar": self.qbar.to_numpy()} if self.track_mean else {})}
 
     def load_state(self, st: dict[str, np.ndarray]) -> None:
+        """Continue from a :meth:`state` (q, and q̄ where tracked); the diagnostics recounted."""
         self.q.from_numpy(st["q"])
         if self.track_mean:
             self.qbar.from_numpy(st["qbar"])
@@ -132,6 +155,7 @@ class SPDESolver(Fluxes, Solver):
         return self.q.to_numpy().astype(np.float64, copy=False)
 
     def diagnostics(self) -> dict[str, float]:
+        """After the last step: mass, the smallest density, negative cells, the Dirichlet inflow."""
         return {"mass": self.mass[None], "min_density": float(self.q_min[None]),
                 "negative_cells": int(self.n_negative[None]), "boundary_inflow": self.inflow[None], "clamped_steps": 0}
 
@@ -143,7 +167,7 @@ class SPDESolver(Fluxes, Solver):
         ``i − 1`` and ``i``, held in registers with their roots, and then cell ``i − 1`` is updated
         (eq. 9) from it and the flux of face ``i − 1``; so each cell is read and written once, and
         a member's diagnostics are summed locally with one atomic per member. Same bits as the
-        three-kernel step (tested); issue 13: this replaced four passes over the member."""
+        three-kernel step (tested)."""
         n, G = ti.static(self.n[0], self.group)
         lo, hi = ti.static(self.grid.boundary[0])
         res_lo, res_hi = ti.static(self.grid.reservoir[0])
@@ -202,8 +226,7 @@ class SPDESolver(Fluxes, Solver):
     @ti.kernel
     def _flux_step(self, step: ti.u32, n: ti.i32, diagnosing: ti.template()):
         """:meth:`fluxes`, :meth:`update` and (``diagnosing``) :meth:`diagnose` as one kernel: a
-        launch costs tens of µs, a sizeable share of a 2D step on two threads
-        (``benchmarks/RESULTS.md``)."""
+        launch costs tens of µs, a sizeable share of a 2D step on two threads."""
         self.inflow[None] = 0.0
         if ti.static(diagnosing):
             self.zero_diagnostics()

@@ -6,8 +6,8 @@ import taichi as ti
 
 from .. import pools
 from ..core import rng
+from ..core.expr import taichi_value
 from ..core.grid import DIRICHLET, NEUMANN, PERIODIC, Grid, cell_of
-from ..scene.expr import taichi_value
 from .solver import Solver
 
 TABLE_REFINE = {1: 16, 2: 4, 3: 1}  # lattice points per cell and axis of a callable potential's gradient table
@@ -26,12 +26,11 @@ class Walker:
     (4 in 1D, 2 in 2D, 1 in 3D): particle ``id0`` takes words ``(id0 mod G)·dim + a``, so a loop
     that holds consecutive identities together (:meth:`ParticleSolver._walk`) makes one call
     for ``G`` particles, and a particle walked alone (:meth:`move`) draws the same numbers.
-    (Issue 13: this replaced one counter per particle, changing the 1D and 2D walk streams.)
 
     The drift of an external potential U (``grid.potential``; Euler–Maruyama, ∇U at the position
     before the step, the whole axis step clamped so a particle still moves at most one cell) is
     compiled in only with one: a formula's gradient is differentiated symbolically
-    (:func:`~ti_dk.scene.expr.derivative`) and compiled to arithmetic; a callable's is read from
+    (:func:`~ti_dk.core.expr.derivative`) and compiled to arithmetic; a callable's is read from
     a table of central differences of U on a lattice :data:`TABLE_REFINE` times finer than the
     grid (nearest lattice point), one cell beyond each side for the reservoirs.
     """
@@ -292,6 +291,16 @@ class ParticleSolver(Placement, Solver):
     Dirichlet sides a particle carries an id (slot at birth, birth step + 1), because absorption
     compacts the slots (:meth:`pools.ParticlePool.compact`, into the pool's other buffer);
     otherwise the slot is the id and one buffer suffices.
+
+    Parameters
+    ----------
+    grid, dt, ensemble, key, real, member0
+        As for :class:`~ti_dk.methods.fv.SPDESolver`.
+    capacity : int
+        Particle slots per member (:meth:`capacity_for`); a step that needs more raises
+        ``OverflowError``.
+
+    Build it with :func:`ti_dk.make_solver`, which also initialises it.
     """
 
     def __init__(self, grid: Grid, dt: float, ensemble: int, key: tuple[int, int], real, capacity: int,
@@ -357,6 +366,7 @@ class ParticleSolver(Placement, Solver):
         return st | ({"pid": self.pool.pid.to_numpy()[b]} if self.grid.has_dirichlet else {})
 
     def load_state(self, st: dict[str, np.ndarray]) -> None:
+        """Continue from a :meth:`state` (positions, counts, and the ids with Dirichlet sides)."""
         self.pool.load(st["x"][None], st["pid"][None] if self.grid.has_dirichlet else None, st["n_alive"][None])
         self.cur = 0
 
@@ -366,6 +376,7 @@ class ParticleSolver(Placement, Solver):
         return self.count.to_numpy().astype(np.float64) / self.grid.cell_volume
 
     def diagnostics(self) -> dict[str, float]:
+        """After the last step: the particles, the Dirichlet inflow and the clamped axis steps."""
         return {
             "mass": float(pools.total(self.pool.n, (self.cur,))),
             "min_density": math.nan,  # not binned every step; counts are never negative

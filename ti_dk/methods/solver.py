@@ -24,7 +24,7 @@ class Solver:
     """Base of every method's solver: ``step``, ``density``, ``diagnostics``, ``state`` and
     ``load_state`` are its own; the rest has a default here that a solver may override.
 
-    Solvers are built and initialised by :func:`ti_dk.methods.make_solver`, so ``initialize`` is
+    Solvers are built and initialised by :func:`ti_dk.make_solver`, so ``initialize`` is
     no part of the contract (its arguments differ between methods).
     """
 
@@ -67,9 +67,11 @@ class RegionSolver(Solver):
     ``(ensemble, slots, dim)``, ``pid`` ``(ensemble, slots, 2)`` and ``n_real`` ``(ensemble,)``."""
 
     def region(self) -> np.ndarray:
+        """The particle region of every member, booleans ``(ensemble, *cells)``."""
         raise NotImplementedError
 
     def snapshot(self, member: int = 0) -> Snapshot:
+        """Member ``member``: its density, region, the region's particles and its boxes."""
         region = self.region()[member]
         st = self.state()
         k = int(st["n_real"][member])

@@ -24,7 +24,7 @@ from pathlib import Path
 
 import h5py
 
-from ..scene.schema import ConfigError
+from ..core.errors import ConfigError
 from .files import is_complete, output_error
 
 # what ti_dk writes inside its folders (a frame, S(k), a snapshot or one a killed run left half-written)
@@ -49,6 +49,7 @@ class Outputs:
 
     @classmethod
     def of(cls, out: str | Path, scene) -> "Outputs":
+        """The outputs of ``scene`` in directory ``out``: files named ``<scene>_<method>``."""
         if str(out) == "":
             raise ConfigError("--out '': give a directory (. for the current one)")
         return cls(Path(out), f"{scene.name}_{scene.method.name}")  # the name is a plain file name (load.py)

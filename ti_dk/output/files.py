@@ -17,6 +17,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 
+from ..core.errors import OutputError
 from .units import units_of
 STAT_KEYS = ("mean", "variance", "skewness", "kurtosis")
 
@@ -27,10 +28,6 @@ def package_version() -> str:
         return metadata.version("ti_dk")
     except metadata.PackageNotFoundError:  # a source tree that was never pip-installed
         return "unknown"
-
-
-class OutputError(RuntimeError):
-    """Output could not be written (disk full, permission, quota): one line, exit status 1."""
 
 
 def output_error(path: Path, exc: OSError) -> OutputError:
@@ -92,6 +89,7 @@ def is_complete(path: Path) -> bool:
 
 
 def versions() -> dict[str, str]:
+    """The versions of ti_dk, Taichi, NumPy, h5py and Python, as every run file records them."""
     import taichi
 
     return {"ti_dk": package_version(), "taichi": ".".join(map(str, taichi.__version__)), "numpy": np.__version__,
@@ -202,6 +200,7 @@ class RunFile:
         ds[n:] = rows
 
     def write_row(self, t: float, row: dict[str, np.ndarray]) -> None:
+        """Append the statistics row of time ``t`` (the keys ``/stats`` holds) and flush."""
         require_space(self.at, sum(np.asarray(v).nbytes for v in row.values()))
         st = self.h5["stats"]
         self._append(st["time"], [t])
@@ -216,6 +215,7 @@ class RunFile:
             self.write_row(t, row)
 
     def write_diagnostics(self, diag: dict[str, list]) -> None:
+        """Append per-step diagnostics (key → values, one per step) to ``/diagnostics`` and flush."""
         require_space(self.at, 8 * sum(len(v) for v in diag.values()))
         for k, v in diag.items():
             if k not in self.diag:
@@ -300,6 +300,7 @@ def write_group(f, name: str, table: dict) -> None:
 
 
 def read_group(g) -> dict:
+    """Every dataset of HDF5 group ``g``, read whole, by name."""
     return {k: g[k][()] for k in g}
 
 
@@ -310,6 +311,7 @@ def write_rows(f, rows: list[dict]) -> None:
 
 
 def read_rows(f) -> list[dict]:
+    """The statistics rows :func:`write_rows` wrote to ``f`` (none: an empty list)."""
     return [read_group(f[f"rows/{i}"]) for i in range(len(f["rows"]))] if "rows" in f else []
 
 

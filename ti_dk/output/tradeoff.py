@@ -50,6 +50,7 @@ def _band(v: tuple[float, float, float], measure: str) -> str:
 
 
 def write_csv(path: Path, rows: list[dict]) -> None:
+    """The pilot's table at ``path`` as CSV, one line per setting (:func:`columns`)."""
     cols = [columns(r) for r in rows]
     with open(path, "w", newline="") as f:
         w = csv.DictWriter(f, fieldnames=list(cols[0]))

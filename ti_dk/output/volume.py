@@ -44,6 +44,8 @@ class Volume:
         return (d @ self.R + 0.9) / 1.8 * size - 0.5, (0.9 - d @ self.U) / 1.8 * size - 0.5
 
     def render(self, ppc: np.ndarray, region: np.ndarray | None, size: int) -> np.ndarray:
+        """The volume panel of ``ppc`` (particles per cell, ``cells``) with the hull of ``region``,
+        as RGB in [0, 1], ``(size, size, 3)``."""
         if self.img is None or self.img.shape[0] != size:
             self.img = ti.Vector.field(3, ti.f64, shape=(size, size))  # RGB of the rendering, [0, 1]
         smooth = np.asarray(ppc, dtype=np.float32)

@@ -9,8 +9,7 @@ Two layouts (scene key ``pool_layout``; the hybrid takes either, the particle me
   holding its slots in dense chunks; only the blocks of the region and its ghost ring are active,
   so memory follows the region's particles, not the grid or the busiest member. Particles move
   between blocks by per-block counts and an exclusive scan (no ``dynamic`` appends, which
-  contend: ``benchmarks/bench_pool.py``). Slower per step on 2 CPU cores, smaller in memory
-  (``benchmarks/RESULTS.md``).
+  contend: ``benchmarks/bench_pool.py``). Slower per step on 2 CPU cores, smaller in memory.
 
 The hybrid reaches a particle through the same ti.funcs in both: a loop over :meth:`units`
 (a member's chunk of slots, or a block), :meth:`unit` (its member, key and slot range),

@@ -61,10 +61,12 @@ class BlockSlots:
 
     @ti.func
     def index(self, b, U, p):
+        """The slot ``p`` of block ``U`` (member, key) in buffer ``b``, as a field index."""
         return ti.Vector([U[0], U[1], b, p])
 
     @ti.func
     def append(self, b, U, m):
+        """Take ``m`` slots at the end of block ``U`` in buffer ``b``; the first one's position."""
         return ti.atomic_add(self.n[U[0], U[1], b], m)
 
     @ti.func
@@ -103,10 +105,12 @@ class BlockSlots:
 
     @ti.func
     def marked(self, I):
+        """Whether slot ``I`` survives the next compaction."""
         return self.keep[I] != 0
 
     @ti.func
     def unmark(self, I):
+        """Slot ``I`` does not survive the next compaction."""
         self.keep[I] = ti.u8(0)
 
     # -- kernels --------------------------------------------------------------------------

@@ -21,7 +21,7 @@ class BlockPool(BlockSlots, BlockMoves):
     has key ``(e, B)`` (``B``: C-order index of the block) and holds the particles of its cells.
     A buffer's slots are dense arrays of :data:`CHUNK` slots under a second pointer, allocated as
     they fill: a dense array of ``capacity`` slots per block would make every active block as
-    large as the fullest (the memory measured: ``benchmarks/RESULTS.md``).
+    large as the fullest.
 
     Active blocks are those :meth:`fitted` asked for; :meth:`retain` deactivates the rest and
     releases the chunks past each block's particles. A

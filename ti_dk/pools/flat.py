@@ -113,7 +113,7 @@ class ParticlePool:
         range is set here, at run time, not over the capacity: otherwise the empty slots beyond
         the particles (a third or more of a hybrid's pool) go to the last thread while the first
         walks every particle. And the units are small (:data:`BLOCK`), so that a loop has enough
-        of them to give both threads work (the unit-size measurements: ``benchmarks/RESULTS.md``)."""
+        of them to give both threads work."""
         self.span[None] = 0
         ti.loop_config(serialize=True)  # over members: a serial task (grid.exclusive_scan)
         for e in range(self.ensemble):
@@ -177,10 +177,12 @@ class ParticlePool:
 
     @ti.func
     def marked(self, I):
+        """Whether slot ``I`` survives the next compaction."""
         return self.keep[I[1], I[2]] != 0
 
     @ti.func
     def unmark(self, I):
+        """Slot ``I`` does not survive the next compaction."""
         self.keep[I[1], I[2]] = ti.u8(0)
 
     @ti.kernel
@@ -192,7 +194,7 @@ class ParticlePool:
         same on any thread count. A particle's random numbers are keyed on its identity, never
         on its slot, so the order changes no result; a step then moves the particles that left
         or entered the region, not all of them (a copy of every particle to the other buffer
-        cost the 3D hybrid 8 % of its step: ``benchmarks/RESULTS.md``)."""
+        cost the 3D hybrid 8 % of its step)."""
         for u in range(self.units(b)):
             e, _, lo, hi = self.unit(b, u)
             c = 0

@@ -30,7 +30,7 @@ def total(counts, row: tuple = ()) -> int:
     """Σ of the per-member counts ``counts[(*row, e)]`` (an i32 field whose last axis is the
     member): the particles a solver reports after every step. A few members are read one by
     one; many are copied at once (``to_numpy`` launches a kernel whose parallel task costs more
-    than a few single reads: ``benchmarks/RESULTS.md``)."""
+    than a few single reads)."""
     E = counts.shape[-1]
     if E <= 16:
         return sum(int(counts[(*row, e)]) for e in range(E))

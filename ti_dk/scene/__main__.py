@@ -1,6 +1,7 @@
-"""``python -m ti_dk.scene``: the command line (:mod:`ti_dk.scene.cli`)."""
+"""``python -m ti_dk.scene``: the command line (:mod:`ti_dk.control.cli`). An entry point, the one kind
+of module allowed to import from a layer above its own."""
 import sys
 
-from .cli import main
+from ..control.cli import main
 
 sys.exit(main())

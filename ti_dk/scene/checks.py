@@ -10,9 +10,9 @@ import warnings
 
 import numpy as np
 
-from . import initial
-from .expr import ExprError, functions_used, numpy_value, quoted
-from .schema import CLAMP_WARN, MAX_PPC, ClampWarning, ConfigError, Scene
+from ..core.errors import ConfigError, ExprError, InitError
+from ..core.expr import functions_used, numpy_value, quoted
+from .schema import CLAMP_WARN, MAX_PPC, ClampWarning, Scene
 from ..core.grid import Grid
 from ..hybrid.ghosts import HYBRID_STEP_LIMIT
 from ..methods.fluxes import drift_coefficients, stability_number
@@ -36,7 +36,7 @@ def check_initial(scene: Scene) -> np.ndarray:
     try:
         ppc = scene.initial_ppc
     except Exception as exc:  # ours say what to change; a callable potential's own error what failed
-        known = isinstance(exc, (ExprError, initial.InitError))
+        known = isinstance(exc, (ExprError, InitError))
         raise ConfigError(f"{key_}: " + (str(exc) if known else f"evaluating it failed ({type(exc).__name__}: {exc})")) from None
     ok = np.isfinite(ppc) & (ppc >= 0) & (ppc <= MAX_PPC)
     if not np.all(ok):

@@ -14,13 +14,10 @@ from pathlib import Path
 
 import numpy as np
 
-from .expr import numpy_value, parse, axes_used, VARIABLES
+from ..core.errors import InitError
+from ..core.expr import numpy_value, parse, axes_used, VARIABLES
 
 CONTEXT = ("x", "weights")  # arguments density_ppc supplies; the rest are scene keys
-
-
-class InitError(ValueError):
-    """An initial condition that cannot be made on this grid; the message says what to change."""
 
 
 def open_regular(path: str | Path):

@@ -1,6 +1,6 @@
 """Loading a scene (TOML file or name, flat overrides) and the one place every value is validated:
 kinds and limits from the schema, then what only the whole scene can say (sizes, the time step,
-choices that fit together), and the run options that are not scene keys."""
+choices that fit together); the run options are checked in :mod:`ti_dk.control.options`."""
 from __future__ import annotations
 
 import inspect
@@ -19,19 +19,20 @@ else:  # pragma: no cover - exercised on Python 3.10 only
 import numpy as np
 
 from . import initial, observables
-from .expr import ExprError, Potential, quoted
+from ..core.expr import ExprError, Potential, quoted
 from ..hybrid.ghosts import ID_BITS_MIN
 from .checks import (COMPUTED, InputWarning, check_hybrid_sizes, check_initial, check_potential, check_time_step,
                      check_unused)
 from .estimates import check_memory
 from .schema import (BOUNDARY_KINDS, INIT_AXES, INIT_KEYS, KEYS, MAX_FIELD,
-                     MAKE_SCENE, MAX_MEMBERS, MAX_STEPS, METHODS, NAME_RE, PPC_LIMITS, SCENE_DIR, SECTIONS, WHERE,
+                     MAKE_SCENE, MAX_STEPS, METHODS, NAME_RE, PPC_LIMITS, SCENE_DIR, SECTIONS, WHERE,
                      ConfigError, GridKeys, InitKeys, Key, MethodKeys, Scene, TimeKeys, did_you_mean)
 
 # ---------------------------------------------------------------------------------------
 # loading
 # ---------------------------------------------------------------------------------------
 def available_scenes() -> list[str]:
+    """The names of the shipped scenes, which :func:`load_scene` takes as they are."""
     return sorted(p.stem for p in SCENE_DIR.glob("*.toml"))
 
 
@@ -315,68 +316,6 @@ def _check_sizes(scene: Scene) -> None:
     p = scene.init.params
     if scene.init.name == "void" and not p["void_lo"] <= p["void_hi"]:
         raise ConfigError(f"void_lo = {p['void_lo']}, void_hi = {p['void_hi']}: give void_lo <= void_hi")
-
-
-# ---------------------------------------------------------------------------------------
-# run options that are not scene keys
-# ---------------------------------------------------------------------------------------
-def check_options(scene: Scene, *, out: str | Path | None = None, executor: str = "local",
-                  workers: int | None = None, chunk: int | None = None, threads: int | None = None,
-                  scheduler: str | None = None, checkpoint_every: int = 0, restart: str | Path | None = None,
-                  movie: bool = False, frames: bool | None = None, member0: int = 0) -> None:
-    """Check the options of a run (the command line's, or :func:`ti_dk.run`'s) before anything starts;
-    options that would silently undo each other are refused too."""
-    def whole(name: str, value: Any, lo: int, hi: int | None = None) -> None:
-        if value is None:
-            return
-        Key("int", "", lo=lo, hi=hi).check(name, value)
-
-    if movie and frames is False:
-        raise ConfigError("--movie is made of frames: drop --no-frames or --movie")
-    if checkpoint_every and out is None:  # it would be dropped silently: a checkpoint is written into out
-        raise ConfigError("checkpoint_every needs an output folder to write the checkpoint into: give out")
-    whole("--threads", threads, 1, 4096)
-    whole("--checkpoint-every", checkpoint_every, 0, MAX_STEPS)
-    whole("--workers", workers, 1, 4 * (os.cpu_count() or 1) if scheduler is None else 100_000)
-    whole("--chunk", chunk, 1, MAX_MEMBERS)
-    whole("member0", member0, 0, MAX_MEMBERS - scene.method.ensemble)  # the last member's index fits 32 bits
-    if executor == "dask":
-        for flag, given in (("--checkpoint-every", checkpoint_every), ("--restart", restart), ("--movie", movie)):
-            if given:
-                raise ConfigError(f"{flag} is for the local executor: drop it or use --executor local "
-                                  "(a stopped Dask run resumes from its finished chunks)")
-    else:
-        for flag, given in (("--workers", workers), ("--chunk", chunk), ("--scheduler", scheduler)):
-            if given is not None:
-                raise ConfigError(f"{flag} is for --executor dask: drop it or add --executor dask")
-    for flag, path, check in (("--restart", restart, lambda p: _check_restart(p, scene)), ("--out", out, _check_out)):
-        try:
-            if path is not None:
-                check(path)
-        except OSError as exc:  # a name longer than the file system takes, a loop of links
-            raise ConfigError(f"{flag}: {exc.strerror}; give a shorter, plain path") from None
-
-
-def _check_restart(restart: str | Path, scene: Scene) -> None:
-    """A checkpoint of this ti_dk's format, whole, for these settings (the full check of its content
-    against the solvers comes when it is loaded)."""
-    from ..control.checkpoint import check_checkpoint_file
-
-    if not Path(restart).is_file():  # missing, or a folder, a FIFO (whose read would wait forever), a device
-        raise ConfigError(f"--restart {restart}: no such checkpoint file (or not a regular file)")
-    check_checkpoint_file(Path(restart), scene)
-
-
-def _check_out(out: str | Path) -> None:
-    """An output directory that exists or can be made, and can be written."""
-    if str(out) == "":
-        raise ConfigError("--out '': give a directory (. for the current one)")
-    p = Path(out)
-    parent = next((q for q in (p, *p.parents) if q.exists()), None)
-    if parent is not None and not parent.is_dir():
-        raise ConfigError(f"--out {out}: {parent} is a file: give a directory")
-    if parent is not None and not os.access(parent, os.W_OK | os.X_OK):
-        raise ConfigError(f"--out {out}: {parent} is not writable here; give a directory you can write")
 
 
 # ---------------------------------------------------------------------------------------

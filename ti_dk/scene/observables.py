@@ -6,7 +6,7 @@
     left = "x < 0.5"
     core = "(x - 0.5)**2 + (y - 0.5)**2 < 0.1**2 and not y > 0.6"
 
-A condition is parsed by the scene's safe formula code (:func:`ti_dk.scene.expr.parse` with
+A condition is parsed by the scene's safe formula code (:func:`ti_dk.core.expr.parse` with
 ``logic=True``: numbers, x y z, the formula functions, ``< <= > >=``, ``and or not``). A region
 holds the cells whose *centre* satisfies it; its observable is the particle count of those cells
 per member, ``Σ_cells q V_c``: the region's integrated density for fv and gaussian, its particles
@@ -19,8 +19,8 @@ from typing import Any
 
 import numpy as np
 
-from .expr import VARIABLES, ExprError, axes_used, numpy_value, parse, truth
-from .schema import ConfigError
+from ..core.errors import ConfigError, ExprError
+from ..core.expr import VARIABLES, axes_used, numpy_value, parse, truth
 
 NAME_RE = re.compile(r"[A-Za-z_][A-Za-z0-9_]{0,63}")  # an observable's name: an identifier
 SERIES = ("time", "mass", "negative_cells", "particles", "region_cells")  # a run's own per-member series

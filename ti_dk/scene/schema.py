@@ -1,4 +1,4 @@
-"""Scene parameters: frozen dataclasses, TOML loading, and the one place input is validated.
+"""Every scene key declared once: frozen sections per table, and the :class:`Scene` that holds them.
 
 A scene file groups its keys in tables (``[grid]``, ``[init]``, ``[time]``, ``[method]``,
 ``[hybrid]``, ``[stats]``, ``[output]``); the loaded :class:`Scene` holds one frozen section per
@@ -9,10 +9,11 @@ files are in particles per cell; inside the solvers they are number densities (p
 volume).
 
 Every key is declared once, as a section field carrying a :class:`Key` (kind, limits or
-choices, a one-line doc); validation, ``--set`` parsing and ``--help`` all read that declaration.
-The run options that are not scene keys (``--out``, Dask sizes, checkpoints) are checked by
-:func:`check_options`, and what a scene needs (memory, steps, time) by :func:`memory_estimate`
-and :func:`work_estimate`, all before Taichi starts.
+choices, a one-line doc); validation (:func:`ti_dk.scene.load.make_scene`), ``--set`` parsing and
+``--help`` (:func:`keys_help`) all read that declaration. The run options that are not scene keys
+(``--out``, Dask sizes, checkpoints) are checked by :func:`ti_dk.control.options.check_options`,
+and what a scene needs (memory, steps, time) by :func:`ti_dk.scene.estimates.memory_estimate` and
+:func:`~ti_dk.scene.estimates.work_estimate`, all before Taichi starts.
 """
 from __future__ import annotations
 
@@ -30,8 +31,9 @@ from pathlib import Path
 import numpy as np
 
 from . import initial
-from .expr import Potential
+from ..core.expr import Potential
 from ..core.grid import Geometry
+from ..core.errors import ConfigError
 from ..hybrid.regrid import RegridParams
 from ..pools import LAYOUTS as POOL_LAYOUTS
 
@@ -65,10 +67,6 @@ MAX_PPC = 1e15  # particles per cell: beyond, counts are not exact in f64 and fo
 NAME_RE = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,99}")  # a scene name is a plain file name
 _RG = RegridParams()  # the clustering defaults, written once in regrid.py
 SERIES_POINTS = 200  # a run's per-member series without observables: about this many records
-
-
-class ConfigError(ValueError):
-    """Bad scene input; the message says what to change."""
 
 
 class ClampWarning(UserWarning):
@@ -312,14 +310,17 @@ class Scene:
     # -- derived time stepping ----------------------------------------------------------
     @property
     def dt(self) -> float:
+        """The time step, C · min(Δx)²."""
         return self.time.C * min(self.grid.dx) ** 2
 
     @property
     def n_steps(self) -> int:
+        """Steps to ``t_end`` (at least one)."""
         return max(1, round(self.time.t_end / self.dt))
 
     @property
     def output_steps(self) -> tuple[int, ...]:
+        """The steps of the statistics rows: those nearest ``output_times``; stationary, the last."""
         if self.stats.t_equil is not None:
             return (self.n_steps,)
         return tuple(sorted({min(self.n_steps, round(t / self.dt)) for t in self.stats.output_times}))

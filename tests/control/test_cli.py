@@ -210,7 +210,7 @@ HOSTILE = [  # (argv, exit status, what the one line must say)
 
 
 def _main(argv, capsys):
-    from ti_dk.scene.cli import main
+    from ti_dk.control.cli import main
 
     try:
         status = main([*argv, "--no-progress"])
@@ -278,8 +278,9 @@ SCENES = ["doublewell2d", "ellipse2d", "equilibrium1d", "sphere3d", "trap1d", "v
 def test_quick_previews_every_scene_stably_under_its_own_name(tmp_path, name):
     """Every shipped scene's --quick scene loads (a stable C on the coarser grid, said in a line where
     it differs from the scene's) and writes none of the full run's paths."""
+    from ti_dk.control import cli as cli_mod
     from ti_dk.output.claim import Outputs
-    from ti_dk.scene import checks, cli as cli_mod, load
+    from ti_dk.scene import checks, load
 
     full = load.load_scene(name)
     quick, note = cli_mod.quick_scene(name, {}, full)
@@ -497,7 +498,8 @@ def test_signals_stop_cleanly_20_trials(tmp_path, sig):
 HANG = """
 import os, sys
 from ti_dk.control.controller import Controller
-from ti_dk.scene import cli, load
+from ti_dk.control import cli
+from ti_dk.scene import load
 
 def hang(*args, **kw):  # a read that never returns: a FIFO with no writer
     print("waiting", flush=True)
@@ -662,7 +664,7 @@ def test_a_refused_restart_names_each_setting_and_writes_nothing(tmp_path):
 
 def test_long_runs_say_how_long_before_they_start(capsys):
     from ti_dk import load_scene
-    from ti_dk.scene.cli import _announce
+    from ti_dk.control.cli import _announce
 
     _announce(load_scene("void1d", ensemble=4))  # a fraction of a second: nothing said
     assert capsys.readouterr().err == ""

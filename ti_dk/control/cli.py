@@ -11,15 +11,17 @@ import os
 import sys
 import warnings
 
-from . import checks, estimates, load, schema
-from ..control import controller, ensemble, runtime, signals
-from ..output.files import OutputError
+from ..core.errors import ConfigError, OutputError, SimulationError, Stopped
+from ..scene import checks, estimates, load, schema
+from . import controller, ensemble, runtime, signals
+from .options import check_options
 
 
 class Parser(argparse.ArgumentParser):
     """argparse with one-line errors (no usage block), as every other input error."""
 
     def error(self, message: str):
+        """Leave with one line and exit status 2."""
         sys.exit(_fail(f"{message}: see {self.prog} --help"))
 
 
@@ -52,6 +54,8 @@ def parser(prog: str, doc: str, out: str, ensemble: str = "number of independent
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    """The command line ``argv`` (default ``sys.argv[1:]``) parsed: :func:`parser`'s arguments and
+    the run's own (``--method``, ``--quick``, frames, snapshots, checkpoints, the executor)."""
     p = parser("python -m ti_dk.scene", __doc__, "output directory for <scene>_<method>.h5 and the rest")
     p.add_argument("--method", help="override the scene's method (" + ", ".join(schema.METHODS) + ")")
     p.add_argument("--overwrite", action="store_true", help="replace a complete result already in --out")
@@ -73,6 +77,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """``python -m ti_dk.scene``: run the scene ``argv`` names; returns the exit status (module
+    docstring)."""
     return guarded(lambda: parse_args(argv), _run)
 
 
@@ -84,14 +90,14 @@ def guarded(parse, body) -> int:
             args = parse()
             signals.check_stop()
             return body(args)
-        except schema.ConfigError as exc:
+        except ConfigError as exc:
             return _fail(str(exc))
-        except signals.Stopped as exc:
+        except Stopped as exc:
             return _fail(str(exc), exc.status)
         except OutputError as exc:
             _fail(str(exc), 1)
             _exit_now(1)
-        except signals.SimulationError as exc:
+        except SimulationError as exc:
             return _fail(str(exc), 1)
 
 
@@ -120,10 +126,10 @@ def _run(args: argparse.Namespace) -> int:
 def _prepare(args: argparse.Namespace) -> schema.Scene:
     """The scene the command line asks for, its options checked."""
     scene, caught, note = scene_of(args)
-    load.check_options(scene, out=args.out, executor=args.executor, workers=args.workers,
-                       chunk=args.chunk, threads=args.threads, scheduler=args.scheduler,
-                       checkpoint_every=args.checkpoint_every, restart=args.restart, movie=args.movie,
-                       frames=not args.no_frames)
+    check_options(scene, out=args.out, executor=args.executor, workers=args.workers,
+                  chunk=args.chunk, threads=args.threads, scheduler=args.scheduler,
+                  checkpoint_every=args.checkpoint_every, restart=args.restart, movie=args.movie,
+                  frames=not args.no_frames)
     warn(caught)
     if note:
         print(f"ti_dk: {note}", file=sys.stderr)
@@ -137,7 +143,7 @@ def scene_of(args: argparse.Namespace) -> tuple[schema.Scene, list[str], str]:
     overrides = load.command_overrides(args.set, {k: getattr(args, k, None) for k in load.FLAGS})
     quick, note = getattr(args, "quick", False), ""
     if quick and "cells" in overrides:
-        raise schema.ConfigError("--quick sets the cells (a quarter per axis): drop it or --set cells")
+        raise ConfigError("--quick sets the cells (a quarter per axis): drop it or --set cells")
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", schema.ClampWarning)
         warnings.simplefilter("always", load.InputWarning)

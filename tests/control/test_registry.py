@@ -3,9 +3,9 @@ import numpy as np
 import pytest
 
 from ti_dk import load_scene
-from ti_dk.scene.schema import METHODS
-from ti_dk.methods.registry import BUILDERS, make_solver
+from ti_dk.control.registry import BUILDERS, make_solver
 from ti_dk.methods.solver import Solver
+from ti_dk.scene.schema import METHODS
 
 
 def test_every_method_has_a_builder():

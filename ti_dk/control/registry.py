@@ -1,4 +1,5 @@
-"""The method registry: each scene ``method`` name and the builder of its solver."""
+"""The method registry: each scene ``method`` name and the builder of its solver, above the methods,
+the hybrid and the scene it assembles."""
 from __future__ import annotations
 
 from collections.abc import Callable
@@ -7,12 +8,12 @@ import numpy as np
 import taichi as ti
 
 from ..core import rng
-from ..scene.schema import Scene
-from .fv import SPDESolver
 from ..core.grid import Grid
 from ..hybrid.solver import HybridSolver
-from .particles import ParticleSolver
-from .solver import Solver
+from ..methods.fv import SPDESolver
+from ..methods.particles import ParticleSolver
+from ..methods.solver import Solver
+from ..scene.schema import Scene
 
 Builder = Callable[[Scene, np.ndarray, dict], Solver]  # (scene, particles per cell, common arguments) → solver
 
@@ -49,7 +50,7 @@ def _hybrid(scene: Scene, ppc: np.ndarray, common: dict) -> HybridSolver:
     return solver
 
 
-BUILDERS: dict[str, Builder] = {  # every name in config.METHODS
+BUILDERS: dict[str, Builder] = {  # every name in ti_dk.scene.schema.METHODS
     "fv": lambda scene, ppc, common: _spde(ppc, common, gaussian=False),
     "gaussian": lambda scene, ppc, common: _spde(ppc, common, gaussian=True),
     "particle": _particle,

@@ -7,7 +7,7 @@ import pytest
 import taichi as ti
 
 from ti_dk import ConfigError, load_scene
-from ti_dk.scene.expr import ExprError, Potential, derivative, numpy_value, parse, taichi_value, truth
+from ti_dk.core.expr import ExprError, Potential, derivative, numpy_value, parse, taichi_value, truth
 
 FORMULAS = {  # text: the same function written in Python
     "0.5*((x-0.5)/0.08)**2": lambda x, y, z: 0.5 * ((x - 0.5) / 0.08) ** 2,

@@ -20,6 +20,8 @@ from typing import Any, Callable
 
 import numpy as np
 
+from .errors import ExprError
+
 VARIABLES = ("x", "y", "z")  # axis 0, 1, 2
 CONSTANTS = {"pi": math.pi, "e": math.e}
 FUNCS = ("sin", "cos", "tan", "exp", "log", "sqrt", "abs", "tanh", "atan", "step")  # step(u): 1 where u >= 0, else 0
@@ -27,10 +29,6 @@ _BINARY = {ast.Add: "add", ast.Sub: "sub", ast.Mult: "mul", ast.Div: "div", ast.
 MAX_CHARS, MAX_DEPTH = 5_000, 100  # a formula's length and nesting (its tree is walked recursively)
 _COMPARE = {ast.Lt: "lt", ast.LtE: "le", ast.Gt: "gt", ast.GtE: "ge"}  # conditions only (logic=True)
 QUADRATURE = {1: 16, 2: 8, 3: 4}  # Gauss–Legendre points per axis for cell averages, by dimension
-
-
-class ExprError(ValueError):
-    """A formula that is not allowed or does not fit the grid; the message says what to change."""
 
 
 # ---------------------------------------------------------------------------------------
