@@ -234,14 +234,14 @@ class HybridKeys:
     min_box: int = key("int", "smallest box side in cells (at most the most cells along an axis)", _RG.min_box, lo=1)
     max_box: int = key("int", "largest box side in cells", _RG.max_box, lo=1, hi=MAX_FIELD)
     regrid_floor: float = key("real", "an uncovered cell below this times threshold before a step: cover all "
-                              "below threshold (0: scheduled regrids only)", _RG.floor, lo=0.0, hi=1.0)
+                              "below threshold (0: scheduled regrids only)", _RG.regrid_floor, lo=0.0, hi=1.0)
     pool_layout: str = key("choice", "particle storage: flat (slots per member) or pointer (blocks of cells, "
                            "only where the region is)", "flat", choices=POOL_LAYOUTS)
 
     @property
     def regrid(self) -> RegridParams:
         return RegridParams(threshold=self.threshold, buffer=self.buffer, efficiency=self.grid_efficiency,
-                            min_box=self.min_box, max_box=self.max_box, floor=self.regrid_floor)
+                            min_box=self.min_box, max_box=self.max_box, regrid_floor=self.regrid_floor)
 
 
 @dataclass(frozen=True)
