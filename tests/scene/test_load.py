@@ -185,7 +185,7 @@ def test_a_potential_is_checked_before_anything_runs():
     from ti_dk.scene.load import parse_value
 
     assert load_scene("trap1d", potential=parse_value("0.5*((x-0.5)/0.08)**2", "potential")).potential.dim == 1
-    assert load_scene("trap1d", potential=parse_value("3", "potential"), init="uniform").grid.potential == "3"
+    assert load_scene("trap1d", potential=parse_value("3", "potential"), init="uniform").grid.potential.source == "3"
     for bad, msg in [("y**2", "potential = 'y\\*\\*2': 'y\\*\\*2' uses y but the grid is 1D: use x"),
                      ("__import__('os')", "is not allowed"), ("x +", "not a formula"), (["x"], "give a formula"),
                      ("exp(1e5*x)", "not finite everywhere")]:

@@ -251,12 +251,35 @@ class Potential:
     as axes). ``tree`` is the formula's (None for a callable); ``source`` what the scene file
     shows. A callable has no Taichi form: the particles' drift −½∇U then comes from a table of
     its central differences on a lattice finer than the grid (``methods.particles.Walker``).
+
+    Parsed once, in ``scene.load`` (``scene.grid.potential``), and passed along as this object:
+    what is derived from it (cell values, gradients, the FV scheme's weights on a grid) is made
+    once, by :meth:`derived`, and kept with it (not pickled: a worker makes its own).
     """
 
     source: str
     dim: int
     tree: tuple | None = None
     function: Callable | None = None
+
+    def __post_init__(self):
+        object.__setattr__(self, "_made", {})  # what derived made, by key (not a field: no eq, hash or asdict)
+
+    def __getstate__(self) -> dict:
+        return {k: v for k, v in self.__dict__.items() if k != "_made"}
+
+    def __setstate__(self, state: dict) -> None:
+        self.__dict__.update(state, _made={})
+
+    def derived(self, key: tuple, make: Callable[[], Any]) -> Any:
+        """``make()`` made once for ``key`` (say ``("cell_values", cells, lengths, pad)``), then kept:
+        every reader gets the same value (an array read-only)."""
+        if key not in self._made:
+            value = make()
+            if isinstance(value, np.ndarray):
+                value.setflags(write=False)
+            self._made[key] = value
+        return self._made[key]
 
     @classmethod
     def of(cls, value: Any, dim: int) -> "Potential | None":
@@ -278,15 +301,20 @@ class Potential:
         return np.asarray(np.broadcast_to(u, np.broadcast_shapes(*(np.shape(a) for a in x))), dtype=np.float64)
 
     def gradient_trees(self) -> tuple[tuple, ...]:
-        """∂U/∂x_a for every axis (formulas only)."""
-        return tuple(derivative(self.tree, a) for a in range(self.dim))
+        """∂U/∂x_a for every axis (formulas only; differentiated once)."""
+        return self.derived(("gradient_trees",), lambda: tuple(derivative(self.tree, a) for a in range(self.dim)))
 
     def cell_values(self, cells: tuple[int, ...], lengths: tuple[float, ...], pad: int = 0) -> np.ndarray:
         r"""``Ū_I = −ln(⟨e^{−U}⟩_I)``: the potential whose Boltzmann factor is the cell average of
         e^{−U} (Gauss–Legendre, :data:`QUADRATURE` points per axis), on the grid grown by ``pad``
         cells beyond each side (reservoir cells). The finite-volume drift uses these values, so its
         stationary state is the cell-averaged Boltzmann profile; taken relative to the cell-centre
-        value, so that a large U does not underflow."""
+        value, so that a large U does not underflow. Made once per grid and ``pad`` (read-only)."""
+        return self.derived(("cell_values", tuple(cells), tuple(lengths), pad),
+                            lambda: self._cell_values(cells, lengths, pad))
+
+    def _cell_values(self, cells: tuple[int, ...], lengths: tuple[float, ...], pad: int) -> np.ndarray:
+        """:meth:`cell_values`, made (the quadrature)."""
         nodes, weights = np.polynomial.legendre.leggauss(QUADRATURE[len(cells)])
         h = [L / n for L, n in zip(lengths, cells)]
         centres = [(np.arange(-pad, n + pad) + 0.5) * hh for n, hh in zip(cells, h)]

@@ -58,7 +58,7 @@ class Grid(Geometry):
             lengths=scene.grid.lengths,
             boundary=tuple((_KIND[lo], _KIND[hi]) for lo, hi in scene.grid.boundary),
             reservoir=tuple((lo / vol, hi / vol) for lo, hi in scene.grid.reservoir_ppc),
-            potential=scene.potential,
+            potential=scene.grid.potential,
         )
 
     @property

@@ -75,13 +75,13 @@ class Region:
             tagged += t
         return masks, tagged
 
-    def plan_extension(self, ppc: np.ndarray) -> tuple[np.ndarray, int]:
-        """The region plus its uncovered cells whose content ``ppc`` is below the threshold
-        (:func:`regrid.tag`), grown by the buffer and clustered: the masks, and how many members
+    def plan_extension(self, tags: np.ndarray) -> tuple[np.ndarray, int]:
+        """The region plus its uncovered cells among ``tags`` (:func:`regrid.tag` of the content),
+        grown by the buffer and clustered: the masks, and how many members
         grew. The new boxes are added to the kept ones. (From the content the caller read for
         the regrid anyway: a device mask of the low cells cost a grid-sized read per extension.)"""
         masks = self.mask()
-        low = regrid.tag(ppc, self.params.threshold) & ~masks
+        low = tags & ~masks
         add = regrid.grow(low, self.params.buffer, (None, *self.periodic))
         members = np.flatnonzero(low.reshape(self.ensemble, -1).any(axis=1))
         for e in members:

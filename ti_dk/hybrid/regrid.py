@@ -24,9 +24,11 @@ class RegridParams:
     ``buffer``: grow the tags by this many cells (Chebyshev distance, across periodic sides);
     ``efficiency``: smallest accepted fraction of tagged cells in a box;
     ``min_box`` / ``max_box``: box side limits in cells;
-    ``floor``: between scheduled regrids, when an uncovered cell holds fewer than ``floor ·
-    threshold`` particles, every uncovered cell below ``threshold`` is covered before the next
-    step (0: scheduled regrids only; see ``HybridSolver.extend``).
+    ``regrid_floor``: between scheduled regrids, when an uncovered cell holds fewer than
+    :attr:`trigger` particles, every uncovered cell below ``threshold`` is covered before the next
+    step (0: scheduled regrids only; see ``Regridding.extend``).
+    The names are the scene keys' (``grid_efficiency`` is ``efficiency`` here); the schema
+    (``scene.schema.HybridKeys``) checks their bounds, so nothing here checks them again.
     """
 
     threshold: float = 5.0
@@ -34,13 +36,20 @@ class RegridParams:
     efficiency: float = 0.7
     min_box: int = 2
     max_box: int = 32
-    floor: float = 1.0
+    regrid_floor: float = 1.0
+
+    @property
+    def trigger(self) -> float:
+        """``regrid_floor · threshold``: an uncovered cell holding fewer particles than this makes an
+        on-demand extension due (``Region.count_low``)."""
+        return self.regrid_floor * self.threshold
 
 
 def tag(ppc: np.ndarray, threshold: float) -> np.ndarray:
-    """Cells whose SPDE content ``ppc`` (particles per cell) is below ``threshold`` or negative
-    (one comparison: below ``max(threshold, 0)``)."""
-    return ppc < max(threshold, 0.0)
+    """Cells whose SPDE content ``ppc`` (particles per cell) is below ``threshold`` (> 0, as the
+    schema checked: so every negative cell too). The one tag rule: the regrids, the extensions and
+    the work estimate (``scene.estimates``) all call it."""
+    return ppc < threshold
 
 
 def grow(tags: np.ndarray, width: int, periodic: tuple[bool | None, ...]) -> np.ndarray:

@@ -23,7 +23,7 @@ class Regridding:
         """Cover, before step ``n``, the uncovered cells below ``threshold`` (grown by the buffer,
         clustered by Berger–Rigoutsos; :meth:`Region.plan_extension`) and keep the rest of the
         region: the on-demand regrid, due when :meth:`Region.count_low` finds a cell below
-        ``regrid_floor · threshold``.
+        ``regrid_floor · threshold`` (:attr:`RegridParams.trigger`).
 
         Tagging promises that no uncovered cell holds fewer than ``threshold`` particles; between
         scheduled regrids that promise breaks, and FV then goes negative (one 2D step at C = 1/16
@@ -36,9 +36,10 @@ class Regridding:
         4.7 σ from 5.6 particles); the cap alone to 8.
         """
         ppc = self._content()
-        masks, members = self.regions.plan_extension(ppc)
+        tags = regrid.tag(ppc, self.params.threshold)  # once: the extension and its log's count
+        masks, members = self.regions.plan_extension(tags)
         self._set_region(masks, n, ppc)
-        self._log(n, int(regrid.tag(ppc, self.params.threshold).sum()), members)
+        self._log(n, int(tags.sum()), members)
 
     def _content(self) -> np.ndarray:
         """The SPDE content of every cell, ``q V_c`` (particles per cell, float64), scaled in place:
@@ -49,6 +50,9 @@ class Regridding:
         return ppc
 
     def _log(self, n: int, tagged: int, on_demand: int) -> None:
+        """One record of :data:`REGRID_LOG`; ``efficiency`` is ``tagged`` over the covered cells, all
+        members: a scheduled regrid's tags after the buffer, an extension's cells below
+        ``threshold`` before it (kept so: the pinned run files hold both)."""
         covered = self.n_cover
         self.regrids.append({"step": n, "boxes": sum(len(b) for b in self.boxes), "covered_cells": covered,
                              "efficiency": tagged / covered if covered else 1.0,

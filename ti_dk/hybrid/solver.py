@@ -79,8 +79,7 @@ class HybridSolver(Regridding, RegionSolver):
         self._change = 0.0  # created − removed at this step's regrid
         self._removed = 0.0  # SPDE content Σ q V_c of the cells the last regrid covered anew
         self.timing = {"spde": 0.0, "particles": 0.0, "regrid": 0.0}  # seconds spent in each part
-        self._trigger = params.floor * params.threshold  # content below which an extension is due
-        self._low: int | None = None  # uncovered cells below the trigger at the last diagnose (None: not known)
+        self._low: int | None = None  # uncovered cells below params.trigger at the last diagnose (None: not known)
 
     @property
     def boxes(self) -> list[list[regrid.Box]]:
@@ -112,13 +111,13 @@ class HybridSolver(Regridding, RegionSolver):
         """The SPDE's diagnostics (:meth:`SPDESolver.diagnose`) and, in the same pass, how many
         uncovered cells are below ``regrid_floor · threshold`` (:meth:`Region.count_low`), which
         the next step's extension check reads."""
-        self._low = self.regions.count_low(self.spde, self._trigger, True)
+        self._low = self.regions.count_low(self.spde, self.params.trigger, True)
 
     def _extension_due(self) -> bool:
         """Whether an uncovered cell holds fewer than ``regrid_floor · threshold`` particles (counted
         at the end of the last step, or now where that step was a plain SPDE step or a state was loaded)."""
         if self._low is None:
-            self._low = self.regions.count_low(self.spde, self._trigger, False)
+            self._low = self.regions.count_low(self.spde, self.params.trigger, False)
         return self._low > 0
 
     def step(self, n: int) -> None:
@@ -128,7 +127,7 @@ class HybridSolver(Regridding, RegionSolver):
             t = _clock()
             if n % self.regrid_interval == 0:
                 self.regrid(n)
-            elif self.params.floor > 0 and self._extension_due():
+            elif self.params.regrid_floor > 0 and self._extension_due():
                 self.extend(n)
             self.timing["regrid"] += _clock() - t
         t0 = _clock()

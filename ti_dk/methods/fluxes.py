@@ -274,9 +274,16 @@ def drift_coefficients(grid) -> np.ndarray:
     :meth:`~ti_dk.core.expr.Potential.cell_values` (cell averages of e^{−U}, so the discrete
     equilibrium is the cell-averaged Boltzmann profile); a reservoir cell beyond a Dirichlet side
     has its own Ū; periodic sides wrap. Weights of faces that carry no flux (Neumann, the padded
-    layer of other axes) are 1."""
+    layer of other axes) are 1. Made once per grid and kept with the potential
+    (:meth:`~ti_dk.core.expr.Potential.derived`: the time-step check and the solver read the same, read-only)."""
+    return grid.potential.derived(("drift_coefficients", grid.cells, grid.lengths, grid.boundary),
+                                  lambda: _weights(grid))
+
+
+def _weights(grid) -> np.ndarray:
+    """:func:`drift_coefficients`, made."""
     n, dim = grid.cells, grid.dim
-    ub = grid.potential.cell_values(n, grid.lengths, pad=1)
+    ub = grid.potential.cell_values(n, grid.lengths, pad=1).copy()  # the periodic images are written in
     for a, (lo, _hi) in enumerate(grid.boundary):
         if lo == PERIODIC:
             take = lambda i: tuple(i if b == a else slice(None) for b in range(dim))  # noqa: E731
@@ -297,12 +304,14 @@ def drift_coefficients(grid) -> np.ndarray:
     return out
 
 
-def stability_number(grid, dt: float, coef: np.ndarray | None = None) -> float:
+def stability_number(grid, dt: float) -> float:
     r"""``max_I Σ_a Δt/(2Δx_a²) (c_L^{I+½e_a} + c_R^{I−½e_a})``: the explicit scheme's diagonal, which
-    must stay below 1 (without a potential ``Σ_a Δt/Δx_a²``; the drift raises it near steep
-    slopes, by about ``Δt |∂_aU| / (2Δx_a)``)."""
-    if coef is None:
-        coef = drift_coefficients(grid)
+    must stay below 1; without a potential (``grid.potential`` None: a :class:`~ti_dk.core.grid.Grid`
+    or a scene's ``[grid]``) ``Σ_a Δt/Δx_a²``, and the drift raises it near steep slopes, by about
+    ``Δt |∂_aU| / (2Δx_a)``. The one stability number: the scene checks read it."""
+    if grid.potential is None:
+        return sum(dt / h**2 for h in grid.dx)
+    coef = drift_coefficients(grid)
     total = 0.0
     for a, (n, h) in enumerate(zip(grid.cells, grid.dx)):
         inner = tuple(slice(0, m) for m in grid.cells)

@@ -46,7 +46,8 @@ def check_initial(scene: Scene) -> np.ndarray:
                           "every cell (no particle count beyond that is exact in double precision)")
     return ppc
 def _drift(scene: Scene) -> tuple[float, float]:
-    """With a potential: the FV scheme's stability number (:func:`fluxes.stability_number`) and
+    """With a potential: the FV scheme's stability number (:func:`fluxes.stability_number`, from the
+    Scharfetter–Gummel weights the solver will read: made once, :func:`fluxes.drift_coefficients`) and
     the largest chance that a particle step along an axis is clamped, its drift −½∂_aU Δt
     evaluated at the cell centres; a potential that is not finite where the run reads it is refused."""
     grid, pot = Grid.from_scene(scene), scene.potential
@@ -66,16 +67,17 @@ def _drift(scene: Scene) -> tuple[float, float]:
     for g, h in zip(grads, grid.dx):
         mu = 0.5 * float(np.max(np.abs(g))) * dt
         clamp = max(clamp, 0.5 * (math.erfc((h - mu) / (sd * math.sqrt(2))) + math.erfc((h + mu) / (sd * math.sqrt(2)))))
-    return stability_number(grid, scene.dt, coef), clamp
+    return stability_number(grid, scene.dt), clamp
 
 
 def stability_limit(scene: Scene) -> float:
     """The explicit FV scheme's limit on C on the scene's grid, with its potential: stable below it."""
-    return scene.time.C / (scene.stability_number if scene.potential is None else _drift(scene)[0])
+    return scene.time.C / (stability_number(scene.grid, scene.dt) if scene.potential is None else _drift(scene)[0])
 
 
 def check_time_step(scene: Scene) -> None:
-    number, clamp = (scene.stability_number, scene.clamp_probability) if scene.potential is None else _drift(scene)
+    number, clamp = (stability_number(scene.grid, scene.dt), scene.clamp_probability) if scene.potential is None \
+        else _drift(scene)
     limit = scene.time.C / number
     if number >= 1 and not scene.time.allow_unstable and scene.method.name != "particle":
         raise ConfigError(

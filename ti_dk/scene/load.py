@@ -213,16 +213,24 @@ def _grid_keys(flat: dict[str, Any], ic_name: str) -> GridKeys:
     reservoir = _per_side("reservoir_ppc", flat.get("reservoir_ppc", 0.0), dim, float)
     for r in (r for sides in reservoir for r in sides):
         Key("real", "", **PPC_LIMITS).check("reservoir_ppc", r)
-    potential = flat.get("potential", "")
-    if isinstance(potential, (int, float)) and not isinstance(potential, bool):  # --set potential=3: a constant
-        potential = repr(potential)
-    if not (isinstance(potential, str) or callable(potential)):
-        raise ConfigError(f"potential = {potential!r}: give a formula in x, y, z in quotes")
+    return GridKeys(cells, lengths, boundary, reservoir, _potential(flat.get("potential", ""), dim))
+
+
+def _potential(value: Any, dim: int) -> Potential | None:
+    """The potential, parsed: here, once (a scene's own, from :meth:`Scene.flat`, is taken as it is
+    on a grid of its dimension, and parsed again from its source on another)."""
+    if isinstance(value, Potential):
+        if value.dim == dim:
+            return value
+        value = value.function if value.function is not None else value.source
+    if isinstance(value, (int, float)) and not isinstance(value, bool):  # --set potential=3: a constant
+        value = repr(value)
+    if not (isinstance(value, str) or callable(value)):
+        raise ConfigError(f"potential = {value!r}: give a formula in x, y, z in quotes")
     try:
-        Potential.of(potential, dim)
+        return Potential.of(value, dim)
     except ExprError as exc:
-        raise ConfigError(f"potential = {quoted(potential)}: {exc}") from None
-    return GridKeys(cells, lengths, boundary, reservoir, potential)
+        raise ConfigError(f"potential = {quoted(value)}: {exc}") from None
 
 
 def _stats_keys(flat: dict[str, Any], t_end: float) -> dict[str, Any]:

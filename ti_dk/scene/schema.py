@@ -166,8 +166,8 @@ class GridKeys(Geometry):
     reservoir_ppc: tuple[tuple[float, float], ...] = key(
         "special", "dirichlet sides: reservoir density in particles per cell (default 0)",
         form=f"a number in [0, {MAX_PPC:g}]; per axis, or [lo, hi] per axis")
-    potential: Any = key(
-        "special", "external potential U in units of k_BT, drift -grad(U)/2 (default none)", "",
+    potential: Potential | None = key(  # parsed once, by load._grid_keys (None: none)
+        "special", "external potential U in units of k_BT, drift -grad(U)/2 (default none)", None,
         form='a formula in x, y, z with + - * / ** sin cos tan exp log sqrt abs tanh atan step pi, '
              'e.g. "0.5*((x-0.5)/0.08)**2"')
 
@@ -232,14 +232,14 @@ class HybridKeys:
     min_box: int = key("int", "smallest box side in cells (at most the most cells along an axis)", _RG.min_box, lo=1)
     max_box: int = key("int", "largest box side in cells", _RG.max_box, lo=1, hi=MAX_FIELD)
     regrid_floor: float = key("real", "an uncovered cell below this times threshold before a step: cover all "
-                              "below threshold (0: scheduled regrids only)", _RG.floor, lo=0.0, hi=1.0)
+                              "below threshold (0: scheduled regrids only)", _RG.regrid_floor, lo=0.0, hi=1.0)
     pool_layout: str = key("choice", "particle storage: flat (slots per member) or pointer (blocks of cells, "
                            "only where the region is)", "flat", choices=POOL_LAYOUTS)
 
     @property
     def regrid(self) -> RegridParams:
         return RegridParams(threshold=self.threshold, buffer=self.buffer, efficiency=self.grid_efficiency,
-                            min_box=self.min_box, max_box=self.max_box, floor=self.regrid_floor)
+                            min_box=self.min_box, max_box=self.max_box, regrid_floor=self.regrid_floor)
 
 
 @dataclass(frozen=True)
@@ -332,34 +332,33 @@ class Scene:
         return self.stats.sample_every if self.stats.observables else max(1, self.n_steps // SERIES_POINTS)
 
     @property
-    def stability_number(self) -> float:
-        """``Σ_a Δt/Δx_a²``: the explicit FV scheme is stable for values below 1."""
-        return sum(self.dt / h**2 for h in self.grid.dx)
-
-    @property
     def clamp_probability(self) -> float:
         """Probability that one particle step (Δt / particle_substeps in the hybrid) along the finest axis
         exceeds Δx (and is clamped)."""
         substeps = self.hybrid.particle_substeps if self.method.name == "hybrid" else 1
         return math.erfc(min(self.grid.dx) / math.sqrt(2 * self.dt / substeps))
 
-    @functools.cached_property
-    def potential(self) -> Potential | None:
-        """The external potential U (None without one): ``grid.potential`` parsed."""
-        return Potential.of(self.grid.potential, self.grid.dim)
-
     @property
+    def potential(self) -> Potential | None:
+        """The external potential U (None without one): ``grid.potential``, parsed when the scene was made."""
+        return self.grid.potential
+
+    @functools.cached_property
     def initial_ppc(self) -> np.ndarray:
-        """The initial condition (cell centres, or cell averages where it says so), in particles per cell."""
-        return initial.density_ppc(self.init.name, self.init.params, self.grid.cells, self.grid.lengths,
-                                   self.potential)
+        """The initial condition (cell centres, or cell averages where it says so), in particles per
+        cell: made at its first read, then kept (read-only; a new scene, as :func:`ti_dk.run` makes,
+        reads a density file again)."""
+        ppc = initial.density_ppc(self.init.name, self.init.params, self.grid.cells, self.grid.lengths,
+                                  self.potential)
+        ppc.setflags(write=False)
+        return ppc
 
     def to_dict(self) -> dict[str, Any]:
-        """The scene as nested tables, as a scene file writes it (a callable potential by its name)."""
+        """The scene as nested tables, as a scene file writes it (the potential by its ``source``: a
+        formula, or a callable's name)."""
         d = dataclasses.asdict(self)
         d["init"] = {"name": self.init.name, **self.init.params}
-        if callable(self.grid.potential):
-            d["grid"]["potential"] = self.potential.source
+        d["grid"]["potential"] = self.potential.source if self.potential else ""
         return d
 
     def flat(self) -> dict[str, Any]:
@@ -368,6 +367,7 @@ class Scene:
         for sec, field_ in WHERE.values():
             if sec is not None:
                 out[_flat_name(field_)] = getattr(getattr(self, sec), field_.name)
+        out["potential"] = self.potential or ""  # the parsed one, taken as it is (none: the key's empty text)
         return out
 
     def replace(self, **changes: Any) -> "Scene":
