@@ -22,7 +22,8 @@ on its slot, so both layouts give the same bits; :meth:`occupied` returns the pa
 by identity, so checkpoints are the same too.
 
 Modules: :mod:`.slots` (the shared rules: slot counts, capacity, checkpoint order), :mod:`.flat`,
-:mod:`.blocks` (with :mod:`.block_slots` and :mod:`.block_moves`).
+:mod:`.blocks` (made of three parts, each an object of its own: :mod:`.block_grid`,
+:mod:`.block_memory` and :mod:`.block_moves`).
 """
 
 from .blocks import BlockPool
