@@ -202,7 +202,7 @@ def test_void_2d_against_the_product_of_clamped_walks():
     # a periodic 20×20 box, 6 per cell, an empty slab 0.4 ≤ x ≤ 0.6 and the region fixed around it
     members = 4000
     scene = load_scene("void1d", method="hybrid", cells=[20, 20], ppc=6, void_lo=0.4, void_hi=0.6, C=0.0625,
-                       t_end=0.0125, ensemble=members, regrid_interval=0, threshold=1, seed=2)
+                       t_end=0.0125, ensemble=members, regrid_interval=0, threshold=1, seed=2, tile=2)
     counts, region = _final_counts(scene)
     assert 0.2 < region.mean() < 0.5
     exact = theory.particle_counts_periodic(scene.initial_ppc, (1.0, 1.0), scene.dt, scene.n_steps)
@@ -289,9 +289,10 @@ def test_regrid_on_demand():
         assert s.diagnostics()["negative_cells"] == 0
     demand = [r for r in s.regrids if r["on_demand"]]
     assert len(demand) > 3 and (s.region() & ~start).sum() > 20
-    # an extension now leaves no uncovered cell below the threshold
-    assert s.regions.count_low(s.spde, 4.0, False) > 0
-    s.extend(60)
+    # an extension, where one is due, leaves no uncovered cell below the threshold (with tiles, which
+    # cover whole tiles around the low cells, none was due at step 60 of this run)
+    if s.regions.count_low(s.spde, 4.0, False) > 0:
+        s.extend(60)
     q = s.density() * vol
     assert q[~s.region()].min() >= 4.0
     # hysteresis: with regrid_floor = 0.5 an extension is due below 2 particles but covers
@@ -315,10 +316,11 @@ from ti_dk import load_scene
 from ti_dk.control.registry import make_solver
 threads = int(sys.argv[1])
 ti_dk.init("cpu", threads=threads)
+region = "{region}"
 SUMS = ("mass",)  # a parallel float sum: its rounding follows the threads (not hashed)
 layout = {1: "flat", 2: "pointer"}[threads]
 scene = load_scene("ellipse2d", method="hybrid", cells=[40, 40], regrid_interval=4, ppc_outer=12, ppc_inner=6,
-                   threshold=4.0, t_end=0.01, seed=5, pool_layout=layout)
+                   threshold=4.0, t_end=0.01, seed=5, pool_layout=layout, region=region)
 s = make_solver(scene, scene.initial_ppc)
 exact = hashlib.sha256()
 for n in range(40):
@@ -334,15 +336,17 @@ print(exact.hexdigest())
 """
 
 
-def test_both_pool_layouts_give_the_same_bits_on_one_and_two_threads():
-    """2D ellipses with regrids and extensions: density, diagnostics at every step and the final
+@pytest.mark.parametrize("region", ["tiles", "boxes"])
+def test_both_pool_layouts_give_the_same_bits_on_one_and_two_threads(region):
+    """2D ellipses with regrids and extensions, the region of tiles or of boxes: density,
+    diagnostics at every step and the final
     state (the checkpoint's content) are bit-identical with the flat pool on 1 thread and the
     pointer pool on 2 (one run each, not four: a changed layout or thread count each alone
     would break the equality). Across thread counts the SPDE's mass, a sum of floats in a
     parallel loop, may differ in the last bits, so it is not compared;
     everything else is identical, a regrid's removed content included: it is summed on the host
     since issue 13."""
-    one, two = digest_on_threads(_LAYOUT_BITS)
+    one, two = digest_on_threads(_LAYOUT_BITS.replace("{region}", region))
     assert one == two
 
 

@@ -1,9 +1,10 @@
-"""The hybrid's particle region (paper §3.2): on the device the covered mask and the flat lists of
-ring and covered cells; on the host a copy of the mask, the ghost ring
+"""The hybrid's particle region (paper §3.2): on the device the covered mask, the tile flags and the
+flat lists of ring and covered cells; on the host a copy of the mask, the ghost ring
 (from which the lists are made) and each member's boxes.
 
-The boxes come from :mod:`regrid` (host NumPy); everything downstream reads the cell mask, so
-nothing depends on how the region was cut into boxes.
+The region comes from tiles flagged on the device (:mod:`.tiles`) or from Berger–Rigoutsos boxes
+(:mod:`regrid`, host NumPy); everything downstream reads the cell mask, so nothing depends on how
+the region was cut into boxes.
 """
 
 import math
@@ -11,7 +12,7 @@ import math
 import numpy as np
 import taichi as ti
 
-from . import regrid
+from . import regrid, tiles
 from ..core.grid import DIRICHLET, PERIODIC, Grid
 
 
@@ -44,11 +45,29 @@ class Region:
         self.cover_list = ti.field(ti.i32, shape=E * math.prod(n))  # flat indices of covered cells
         self.leads = ti.field(ti.i8, shape=self.ring_list.shape)  # the lead face of each ring cell (lead; -1: none)
         self.n_ring, self.n_cover = 0, 0  # lengths of the two lists
-        self.boxes: list[list[regrid.Box]] = [[] for _ in range(E)]  # each member's region
+        self.tile = tiles.side_for(params.tile, self.n)  # the tiles' side in cells
+        self.tiles = tiles.Tiles(grid, E, self.tile, params.buffer) if params.region == "tiles" else None
+        self._boxes: list[list[regrid.Box]] = [[] for _ in range(E)]  # boxes: each member's region
         self._mask = np.zeros((E, *n), dtype=bool)  # the host's copy of `covered` (read at every regrid)
         self.ring_mask = np.zeros((E, *self.padded), dtype=bool)  # host: the ghost cells (padded index = cell + 1)
 
     # -- host -----------------------------------------------------------------------------
+    @property
+    def boxes(self) -> "list[list[regrid.Box]] | tiles.MemberBoxes":
+        """Each member's region as boxes: Berger–Rigoutsos's, or one per tile (made when asked)."""
+        return self._boxes if self.tiles is None else tiles.MemberBoxes(self._mask, self.tile)
+
+    def box_count(self) -> int:
+        """How many boxes :attr:`boxes` holds, all members."""
+        return sum(len(b) for b in self._boxes) if self.tiles is None else tiles.count(self._mask, self.tile)
+
+    def plan_tiles(self, spde, keep: float) -> tuple[np.ndarray, int]:
+        """A new region of tiles for every member from ``spde``, flagged on the device
+        (:meth:`Tiles.flag`; ``keep``: a covered tile stays while a cell near it holds less):
+        the masks, and how many cells were tagged (after the buffer). Reads back the flags only."""
+        tagged = self.tiles.flag(spde, self, self.params.threshold, keep)
+        return self.tiles.mask(), tagged
+
     def mask(self) -> np.ndarray:
         """The region of every member, ``(ensemble, *cells)`` booleans (from the host's copy: no
         device read, which would cost every extension a kernel launch and a copy)."""
@@ -71,7 +90,7 @@ class Region:
         cache: dict[bytes, list] = {}
         tagged = 0
         for e in range(self.ensemble):
-            self.boxes[e], masks[e], t = regrid.region(ppc[e], self.params, self.periodic, cache)
+            self._boxes[e], masks[e], t = regrid.region(ppc[e], self.params, self.periodic, cache)
             tagged += t
         return masks, tagged
 
@@ -86,7 +105,7 @@ class Region:
         members = np.flatnonzero(low.reshape(self.ensemble, -1).any(axis=1))
         for e in members:
             boxes = regrid.cluster(add[e], self.params)
-            self.boxes[e] = list(self.boxes[e]) + boxes
+            self._boxes[e] = list(self._boxes[e]) + boxes
             masks[e] |= regrid.mask(boxes, self.n)
         return masks, len(members)
 
@@ -138,10 +157,10 @@ class Region:
         self.covered.from_numpy(st["covered"])
         self._mask = st["covered"].astype(bool)
         self.lists()
-        self.boxes = [[] for _ in range(self.ensemble)]
+        self._boxes = [[] for _ in range(self.ensemble)]
         d = self.dim
         for row in st["boxes"]:
-            self.boxes[row[0]].append((tuple(int(v) for v in row[1:1 + d]), tuple(int(v) for v in row[1 + d:])))
+            self._boxes[row[0]].append((tuple(int(v) for v in row[1:1 + d]), tuple(int(v) for v in row[1 + d:])))
 
     # -- device ---------------------------------------------------------------------------
     @ti.func

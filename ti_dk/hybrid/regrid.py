@@ -18,8 +18,12 @@ Box = tuple[tuple[int, ...], tuple[int, ...]]
 
 @dataclass(frozen=True)
 class RegridParams:
-    """Clustering parameters (paper §3.2; the names follow AMReX).
+    """Region parameters (paper §3.2; the names follow AMReX).
 
+    ``region``: ``tiles`` (fixed tiles flagged on the device, :mod:`.tiles`) or ``boxes``
+    (Berger–Rigoutsos, :func:`cluster`, the paper's); ``tile``: the tiles' side in cells (0: 1 in
+    1D, 4 in 2D and 3D); ``release``: a covered tile leaves the region only when all its cells,
+    grown by the buffer, hold at least ``release · threshold`` particles (hysteresis);
     ``threshold``: tag cells holding fewer particles than this (and every negative cell);
     ``buffer``: grow the tags by this many cells (Chebyshev distance, across periodic sides);
     ``efficiency``: smallest accepted fraction of tagged cells in a box;
@@ -37,6 +41,9 @@ class RegridParams:
     min_box: int = 2
     max_box: int = 32
     regrid_floor: float = 1.0
+    region: str = "tiles"
+    tile: int = 0
+    release: float = 1.5
 
     @property
     def trigger(self) -> float:

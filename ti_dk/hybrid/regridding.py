@@ -1,5 +1,7 @@
-"""Regrids of the AMAR hybrid (paper §3.2): a scheduled regrid (tag, buffer, Berger–Rigoutsos),
-the on-demand extension, and moving the particles to a new region."""
+"""Regrids of the AMAR hybrid (paper §3.2): a scheduled regrid (tag, buffer, tiles or
+Berger–Rigoutsos), the on-demand extension, and moving the particles to a new region."""
+
+import math
 
 import numpy as np
 
@@ -13,7 +15,11 @@ class Regridding:
     """The regrid half of :class:`~.solver.HybridSolver` (whose state it reads and sets)."""
 
     def regrid(self, n: int) -> None:
-        """New region from the SPDE density at step ``n`` (tag, buffer, Berger–Rigoutsos)."""
+        """New region from the SPDE density at step ``n``: tiles flagged on the device, with
+        hysteresis (:meth:`_retile`), or tag, buffer, Berger–Rigoutsos on the host."""
+        if self.regions.tiles is not None:
+            self._retile(n, self.params.release * self.params.threshold, False)
+            return
         ppc = self._content()
         masks, tagged = self.regions.plan(ppc)
         self._set_region(masks, n, ppc, sort=True)
@@ -34,12 +40,32 @@ class Regridding:
         most steps of ellipse2d). Together with the ghost-entry cap of :meth:`Coupling._cap`
         this cut the negative cell-steps of ellipse2d at threshold 5 from 47 to 1 (an FV step of
         4.7 σ from 5.6 particles); the cap alone to 8.
+
+        With tiles, every tile that holds a cell below ``threshold`` after the buffer joins the
+        region (:meth:`_retile`).
         """
+        if self.regions.tiles is not None:
+            self._retile(n, math.inf, True)
+            return
         ppc = self._content()
         tags = regrid.tag(ppc, self.params.threshold)  # once: the extension and its log's count
         masks, members = self.regions.plan_extension(tags)
         self._set_region(masks, n, ppc)
         self._log(n, int(tags.sum()), members)
+
+    def _retile(self, n: int, keep: float, extending: bool) -> None:
+        """A region of tiles flagged on the device (:meth:`Region.plan_tiles`; ``keep``: a covered
+        tile stays while a cell near it holds less). Members whose region is unchanged (with
+        hysteresis, most at most regrids) cost nothing more: where none changed, nothing
+        grid-sized is read or written, and no particle moves (the order of the particles in a pool
+        changes no result, so the scheduled regrid's sort is skipped too)."""
+        masks, tagged = self.regions.plan_tiles(self.spde, keep)
+        changed = (masks != self.regions.mask()).reshape(self.ensemble, -1).any(axis=1)
+        if changed.any():
+            self._set_region(masks, n, self._content(), sort=not extending)
+        else:
+            self._removed, self._created = 0.0, 0
+        self._log(n, tagged, int(changed.sum()) if extending else 0)
 
     def _content(self) -> np.ndarray:
         """The SPDE content of every cell, ``q V_c`` (particles per cell, float64), scaled in place:
@@ -54,9 +80,9 @@ class Regridding:
         members: a scheduled regrid's tags after the buffer, an extension's cells below
         ``threshold`` before it (kept so: the pinned run files hold both)."""
         covered = self.n_cover
-        self.regrids.append({"step": n, "boxes": sum(len(b) for b in self.boxes), "covered_cells": covered,
+        self.regrids.append({"step": n, "boxes": self.regions.box_count(), "covered_cells": covered,
                              "efficiency": tagged / covered if covered else 1.0,
-                             "created": int(self.sampler.created[None]), "removed": self._removed,
+                             "created": self._created, "removed": self._removed,
                              "on_demand": on_demand})
 
     def set_region(self, masks: np.ndarray, n: int) -> None:
@@ -83,6 +109,7 @@ class Regridding:
         self._removed = float(ppc.reshape(-1)[cells[:n_new]].sum())
         self.sampler.cover(self.pool, self.cur, n * self.substeps, self._tilt_on(n), self.coupling.count,
                            cells, n_new, n_gone, int(sort or n_gone > 0))
+        self._created = int(self.sampler.created[None])
         if sort:
             self.coupling.sort(self.pool, self.cur)
             self.cur = 1 - self.cur
@@ -94,7 +121,7 @@ class Regridding:
         self.regions.lists(grown)
         if self.sampler.check_need() > self.pool.capacity:  # the estimate bounds it; kept as a guard
             raise RuntimeError("particle pool estimate too small at a regrid")
-        self._change += self.sampler.created[None] - self._removed
+        self._change += self._created - self._removed
 
     def _estimate(self, masks: np.ndarray, near: np.ndarray, ppc: np.ndarray) -> np.ndarray:
         """Slots each cell can ask for around a regrid (``(ensemble, *cells)``; the pool adds the

@@ -54,8 +54,9 @@ class HybridSolver(Regridding, RegionSolver):
 
     Regridding (every ``regrid_interval`` steps, at the start, and on demand for a member that
     starts a step with an uncovered cell below ``regrid_floor · threshold``, see :meth:`extend`;
-    0 keeps the first region): tag,
-    buffer and Berger–Rigoutsos per member; particles in cells that stay covered are kept, cells
+    0 keeps the first region): tag and
+    buffer, then tiles flagged on the device with hysteresis (:mod:`.tiles`, the default) or
+    Berger–Rigoutsos per member on the host (``region = "boxes"``); particles in cells that stay covered are kept, cells
     that leave the region keep their count as density, newly covered cells are sampled from the
     SPDE (the only step that changes the total; logged in ``regrids``). At the start the state is
     the piecewise-constant initial condition, so those particles lie uniformly in their cells.
@@ -78,6 +79,7 @@ class HybridSolver(Regridding, RegionSolver):
         self.regrids: list[dict] = []  # one record per regrid
         self._change = 0.0  # created − removed at this step's regrid
         self._removed = 0.0  # SPDE content Σ q V_c of the cells the last regrid covered anew
+        self._created = 0  # particles the last regrid sampled into them
         self.timing = {"spde": 0.0, "particles": 0.0, "regrid": 0.0}  # seconds spent in each part
         self._low: int | None = None  # uncovered cells below params.trigger at the last diagnose (None: not known)
 

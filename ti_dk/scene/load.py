@@ -266,7 +266,8 @@ def _check_choices(scene: Scene) -> None:
     if h.max_box < 2 * h.min_box:
         raise ConfigError(f"max_box = {h.max_box} < 2 min_box = {2 * h.min_box}: "
                           "raise max_box so an oversized box can be halved")
-    cells = scene.grid.cells
+    if h.tile > max(cells := scene.grid.cells):
+        raise ConfigError(f"tile = {h.tile} > {max(cells)}, the grid's largest side: give at most {max(cells)}")
     if m.name == "hybrid" and 32 - math.ceil(math.log2(math.prod(n + 2 for n in cells))) < ID_BITS_MIN:
         raise ConfigError(f"cells = {list(cells)}: too many cells for the hybrid's 32-bit particle ids; "
                           f"use at most about {2 ** (32 - ID_BITS_MIN):.3g} cells")

@@ -56,6 +56,7 @@ SCENE_DIR = scene_dir()
 METHODS = ("fv", "gaussian", "particle", "hybrid")
 SPDES = ("fv", "gaussian")  # the SPDE a hybrid run keeps on the whole grid
 GHOST_PROFILES = ("mean", "linear", "uniform")  # how sampled particles lie in their cell (see HybridSolver)
+REGIONS = ("tiles", "boxes")  # how the particle region covers the tagged cells (hybrid.tiles, hybrid.regrid)
 BOUNDARY_KINDS = ("periodic", "neumann", "dirichlet")
 PRECISIONS = ("f32", "f64")
 PARTICLE_INITS = ("per_cell", "exact_uniform", "exact")
@@ -227,10 +228,17 @@ class HybridKeys:
     regrid_interval: int = key("int", "steps between regrids (0: the region is fixed)", 10, lo=0, hi=MAX_STEPS)
     buffer: int = key("int", "grow tagged cells by this many cells (at most the most cells along an axis)", _RG.buffer,
                       lo=0)
-    grid_efficiency: float = key("real", "smallest tagged fraction of a box", _RG.efficiency,
+    region: str = key("choice", "how tagged cells are covered: tiles (each tile holding a tag, flagged on the device) "
+                      "or boxes (Berger-Rigoutsos, the paper's)", _RG.region, choices=REGIONS)
+    tile: int = key("int", "tiles: side in cells (0: 1 in 1D, 4 in 2D and 3D), at most the grid's largest side",
+                    _RG.tile, lo=0)
+    release: float = key("real", "tiles: a covered tile leaves only when all its cells (with the buffer) hold at "
+                         "least this times threshold (hysteresis)", _RG.release, lo=1.0)
+    grid_efficiency: float = key("real", "boxes: smallest tagged fraction of a box", _RG.efficiency,
                                  lo=0.0, hi=1.0, above=True)
-    min_box: int = key("int", "smallest box side in cells (at most the most cells along an axis)", _RG.min_box, lo=1)
-    max_box: int = key("int", "largest box side in cells", _RG.max_box, lo=1, hi=MAX_FIELD)
+    min_box: int = key("int", "boxes: smallest box side in cells (at most the most cells along an axis)", _RG.min_box,
+                       lo=1)
+    max_box: int = key("int", "boxes: largest box side in cells", _RG.max_box, lo=1, hi=MAX_FIELD)
     regrid_floor: float = key("real", "an uncovered cell below this times threshold before a step: cover all "
                               "below threshold (0: scheduled regrids only)", _RG.regrid_floor, lo=0.0, hi=1.0)
     pool_layout: str = key("choice", "particle storage: flat (slots per member) or pointer (blocks of cells, "
@@ -239,7 +247,8 @@ class HybridKeys:
     @property
     def regrid(self) -> RegridParams:
         return RegridParams(threshold=self.threshold, buffer=self.buffer, efficiency=self.grid_efficiency,
-                            min_box=self.min_box, max_box=self.max_box, regrid_floor=self.regrid_floor)
+                            min_box=self.min_box, max_box=self.max_box, regrid_floor=self.regrid_floor,
+                            region=self.region, tile=self.tile, release=self.release)
 
 
 @dataclass(frozen=True)

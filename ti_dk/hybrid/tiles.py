@@ -1,0 +1,131 @@
+"""The particle region as fixed tiles flagged on the device (``region = "tiles"``, the default).
+
+The grid is cut into tiles of ``tile`` cells a side (the last tile along an axis may be cut short
+by the grid). One kernel flags every tile of every member from the tag rule of
+:func:`regrid.tag` grown by ``buffer`` (:meth:`Tiles.flag`), and the host reads back only the
+flags, ``ensemble × tiles`` bytes. Every tile that holds a tag is covered whole, as SAMRAI's
+``TileClustering`` and Uintah's ``TiledRegridder`` make every tile with a tag a box; unlike
+Berger–Rigoutsos (:func:`regrid.cluster`, ``region = "boxes"``, the paper's), the region then
+follows the tags to within a tile, whatever the box-cutting settings.
+
+Hysteresis: a covered tile stays while any of its cells, grown by ``buffer``, holds fewer than
+``release · threshold`` particles, so it leaves only when all are safely above the threshold;
+a region whose edge cells fluctuate about the threshold then does not flicker.
+"""
+
+import math
+from collections.abc import Sequence
+
+import numpy as np
+import taichi as ti
+
+from ..core.grid import PERIODIC, Grid
+from .regrid import Box
+DEFAULT_SIDE = {1: 1, 2: 4, 3: 4}  # tile side in cells where ``tile = 0``, by dimension (1D: the tags exactly)
+
+
+def side_for(tile: int, cells: tuple[int, ...]) -> int:
+    """The tile side in cells: ``tile``, or (0) the default of the grid's dimension, at most the
+    grid's largest side."""
+    return min(tile or DEFAULT_SIDE[len(cells)], max(cells))
+
+
+@ti.data_oriented
+class Tiles:
+    """Tile flags of every member on the device, ``(ensemble, *tiles)`` bytes, and their kernel."""
+
+    def __init__(self, grid: Grid, ensemble: int, side: int, buffer: int):
+        self.grid, self.ensemble, self.side, self.buffer = grid, ensemble, side, buffer
+        self.dim, self.n = grid.dim, grid.cells
+        self.shape = tuple(-(-m // side) for m in self.n)  # tiles per axis
+        self.flags = ti.field(ti.u8, shape=(ensemble, *self.shape))  # 1: the tile is in the particle region
+
+    def mask(self) -> np.ndarray:
+        """The region the flags give, ``(ensemble, *cells)`` booleans (one small read: the flags)."""
+        return spread(self.flags.to_numpy().astype(bool), self.side, self.n)
+
+    @ti.kernel
+    def flag(self, spde: ti.template(), region: ti.template(), threshold: ti.f64, keep: ti.f64) -> ti.i32:
+        """Flag each tile of each member: 1 where one of its cells is tagged after the buffer (a cell
+        within Chebyshev distance ``buffer`` of it, across periodic sides, holds a content
+        ``q V_c`` below ``threshold``: the rule of :func:`regrid.tag`, negative cells included), or
+        where the tile is covered now (one of its cells is, in ``region.covered``) and one of its cells
+        is within ``buffer`` of a content below ``keep`` (``release · threshold`` at a scheduled
+        regrid, hysteresis; infinite at an extension, which only adds tiles). Returns the cells
+        tagged after the buffer, all members (the regrid log's efficiency)."""
+        side, b, vol = ti.static(self.side, self.buffer, self.grid.cell_volume)
+        tagged = 0
+        for K in ti.grouped(self.flags):
+            old, low, stay = False, False, False
+            for I in ti.grouped(ti.ndrange(*([side] * self.dim))):
+                C = ti.Vector([K[a + 1] * side + I[a] for a in ti.static(range(self.dim))])
+                inside = True
+                for a in ti.static(range(self.dim)):
+                    inside = inside and C[a] < self.n[a]
+                if inside:
+                    old = old or region.covered[region.member(K[0], C)] != 0
+                    least = ti.math.inf  # the least content within the buffer
+                    for O in ti.grouped(ti.ndrange(*([2 * b + 1] * self.dim))):
+                        D, ok = C + O - b, True
+                        for a in ti.static(range(self.dim)):
+                            if ti.static(self.grid.boundary[a][0] == PERIODIC):
+                                D[a] = (D[a] + self.n[a]) % self.n[a]
+                            ok = ok and 0 <= D[a] < self.n[a]
+                        if ok:
+                            least = ti.min(least, ti.cast(spde.q[region.member(K[0], D)], ti.f64) * vol)
+                    if least < threshold:
+                        low = True
+                        tagged += 1
+                    stay = stay or least < keep
+            self.flags[K] = ti.u8(low or (old and stay))
+        return tagged
+
+
+
+def spread(flags: np.ndarray, side: int, n: tuple[int, ...]) -> np.ndarray:
+    """Tile flags ``(ensemble, *tiles)`` as the cell mask ``(ensemble, *n)`` they cover."""
+    for a, m in enumerate(n):
+        flags = np.repeat(flags, side, axis=a + 1).take(range(m), axis=a + 1)
+    return flags
+
+
+def split(masks: np.ndarray, side: int) -> tuple[np.ndarray, np.ndarray]:
+    """``masks`` (``(ensemble, *cells)`` booleans) as the tiles they cover whole (``(ensemble,
+    *tiles)``; a tile cut short by the grid's edge counts as whole when its cells are covered) and
+    the cells they cover in tiles covered in part (a region set from outside,
+    :meth:`HybridSolver.set_region`; none where the tiles made the region)."""
+    n = masks.shape[1:]
+    padded = np.ones((masks.shape[0], *(math.ceil(m / side) * side for m in n)), dtype=bool)
+    padded[(slice(None), *(slice(0, m) for m in n))] = masks
+    whole = padded.reshape([masks.shape[0], *(s for m in padded.shape[1:] for s in (m // side, side))])
+    whole = whole.all(axis=tuple(range(2, 2 * len(n) + 1, 2)))
+    return whole, masks & ~spread(whole, side, n)
+
+
+def boxes(mask: np.ndarray, side: int) -> list[Box]:
+    """One member's region (``mask``, a cell mask) as boxes: one per tile it covers whole (cut
+    short by the grid's edge), then one per cell of :func:`split`'s part; their union is the region."""
+    n = mask.shape
+    whole, part = split(mask[None], side)
+    return ([(tuple(int(t) * side for t in T), tuple(min((int(t) + 1) * side, m) for t, m in zip(T, n)))
+             for T in np.argwhere(whole[0])] + [(tuple(map(int, C)), tuple(int(c) + 1 for c in C))
+                                               for C in np.argwhere(part[0])])
+
+
+def count(masks: np.ndarray, side: int) -> int:
+    """How many boxes :func:`boxes` gives, all members."""
+    whole, part = split(masks, side)
+    return int(whole.sum() + part.sum())
+
+
+class MemberBoxes(Sequence):
+    """Every member's :func:`boxes`, each made when asked (a frame asks for one member's)."""
+
+    def __init__(self, masks: np.ndarray, side: int):
+        self.masks, self.side = masks, side
+
+    def __len__(self) -> int:
+        return len(self.masks)
+
+    def __getitem__(self, e: int) -> list[Box]:
+        return boxes(self.masks[e], self.side)
