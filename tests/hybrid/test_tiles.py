@@ -8,7 +8,7 @@ import pytest
 
 from ti_dk import load_scene
 from ti_dk.hybrid import regrid, tiles
-from ti_dk.methods.registry import make_solver
+from ti_dk.control.registry import make_solver
 from ti_dk.scene.load import InputWarning
 
 
