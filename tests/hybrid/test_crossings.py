@@ -23,7 +23,7 @@ def test_ghosts_drawn_as_crossings_follow_the_exact_law(b):
     from ti_dk.core import rng
 
     with pytest.warns(ClampWarning):
-        scene = load_scene("void1d", method="hybrid", regrid_interval=0, cells=[12, 10], ensemble=1,
+        scene = load_scene("void1d", method="hybrid", regrid_interval=0, region="boxes", cells=[12, 10], ensemble=1,
                            boundary=[["dirichlet", "neumann"], "periodic"], reservoir_ppc=[[3.5, 0.0], 0.0],
                            void_lo=-1, void_hi=0.3, ppc=6.5, seed=8, C=0.5)
     s = make_solver(scene, scene.initial_ppc)
