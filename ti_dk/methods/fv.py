@@ -6,13 +6,14 @@ import numpy as np
 import taichi as ti
 
 from ..core import rng
-from ..core.grid import DIRICHLET, NEUMANN, PERIODIC, Grid, numpy_dtype, row_spread
+from ..core.grid import DIRICHLET, NEUMANN, PERIODIC, Grid, across, numpy_dtype, row_spread
+from .fluxes import Faces, drift_coefficients
+from .passes import Passes
 from .solver import Solver
-from .fluxes import Fluxes, drift_coefficients
 
 
 @ti.data_oriented
-class SPDESolver(Fluxes, Solver):
+class SPDESolver(Solver):
     r"""Explicit Euler–Maruyama for ``dq = ½∇²q dt + ∇·(√max(q,0) dW)`` on every ensemble member.
 
     One step is the flux form, eq. (9),
@@ -26,13 +27,8 @@ class SPDESolver(Fluxes, Solver):
 
     where ``s = q`` for the finite-volume scheme (eq. 7) and ``s = q̄`` for the linearised Gaussian
     scheme (eq. 11), q̄ obeying the deterministic heat equation (10). ``Z`` is a standard normal
-    keyed on (seed, member, step, face), so a face's noise is the same whoever computes it: one
-    Philox-4x32-10 counter serves ``G = 4 // dim`` consecutive cells along the last axis (4 in 1D,
-    2 in 2D, 1 in 3D), word ``g·dim + a`` driving the lower face along axis ``a`` of the group's
-    cell ``g``, so all four words are used in 1D and 2D (three in 3D).
-    For the finite-volume scheme ``√max(q, 0)`` is taken on both sides of each face as the flux is
-    made (as fast as loading roots made by a pass before, which saves that pass and its field);
-    for the Gaussian scheme q̄'s roots are taken once per cell for all members.
+    keyed on (seed, member, step, face), so a face's noise is the same whoever computes it
+    (:class:`.fluxes.Faces` makes a face's flux, :class:`.passes.Passes` runs a step's two passes).
 
     Boundaries: periodic faces wrap; Neumann faces carry no flux; a Dirichlet face sees a ghost
     cell at the reservoir density (for q and for q̄).
@@ -107,6 +103,7 @@ class SPDESolver(Fluxes, Solver):
             self.coef = ti.Vector.field(2 * self.dim, real, shape=(1, *faces))
             self.coef.from_numpy(drift_coefficients(grid)[None].astype(numpy_dtype(real)))
         self.replaced = None  # u8 field like q: 1 where the caller overwrites q after each step (see replaced_in)
+        self.faces, self.passes = Faces(self), Passes(self)  # the flux through one face; the two passes of a step
 
     # -- public -------------------------------------------------------------------------
     def initialize(self, ppc: np.ndarray) -> None:
@@ -162,7 +159,7 @@ class SPDESolver(Fluxes, Solver):
     # -- kernels ------------------------------------------------------------------------
     @ti.kernel
     def _step_members(self, step: ti.u32):
-        """The 1D finite-volume step (:meth:`fluxes`, :meth:`update`, :meth:`diagnose`) in one pass
+        """The 1D finite-volume step (:meth:`.Passes.fluxes`, :meth:`.Passes.update`, :meth:`diagnose`) in one pass
         over each member's faces: face ``i``'s flux (eq. 8) is made from the old densities of cells
         ``i − 1`` and ``i``, held in registers with their roots, and then cell ``i − 1`` is updated
         (eq. 9) from it and the flux of face ``i − 1``; so each cell is read and written once, and
@@ -190,7 +187,7 @@ class SPDESolver(Fluxes, Solver):
                 # for all LLVM knows) it cost 8 % of the step (benchmarks/RESULTS.md)
                 key = ti.math.uvec2(self.key[0], self.key[1])
                 for k in range((n + G) // G):  # faces 0 … n, G per Philox counter
-                    bits = self._face_noise(ti.Vector([e, G * k]), step, key)
+                    bits = self.faces.noise(ti.Vector([e, G * k]), step, key)
                     for g in ti.static(range(G)):
                         i = G * k + g
                         if i <= n:
@@ -204,7 +201,7 @@ class SPDESolver(Fluxes, Solver):
                             if i == n and ti.static(hi == PERIODIC):
                                 F = F_first
                             elif not ((i == 0 and ti.static(lo == NEUMANN)) or (i == n and ti.static(hi == NEUMANN))):
-                                F = self._flux(ti.Vector([0, i]), 0, q_left, q_right, root_left + root_right, bits[g])
+                                F = self.faces.flux(ti.Vector([0, i]), 0, q_left, q_right, root_left + root_right, bits[g])
                             if i == 0:
                                 F_first = F
                             else:  # eq. (9) for cell i − 1
@@ -219,19 +216,19 @@ class SPDESolver(Fluxes, Solver):
                 self.n_negative[None] += negative
 
     def advance(self, n: int) -> None:
-        """:meth:`fluxes` then :meth:`update` for step ``n``, in one kernel, without the diagnostics
+        """:meth:`.Passes.fluxes` then :meth:`.Passes.update` for step ``n``, in one kernel, without the diagnostics
         (the hybrid's step, which counts them after its synchronisation): one launch, not two."""
         self._flux_step(n, self.n[-1], False)
 
     @ti.kernel
     def _flux_step(self, step: ti.u32, n: ti.i32, diagnosing: ti.template()):
-        """:meth:`fluxes`, :meth:`update` and (``diagnosing``) :meth:`diagnose` as one kernel: a
+        """:meth:`.Passes.fluxes`, :meth:`.Passes.update` and (``diagnosing``) :meth:`diagnose` as one kernel: a
         launch costs tens of µs, a sizeable share of a 2D step on two threads."""
         self.inflow[None] = 0.0
         if ti.static(diagnosing):
             self.zero_diagnostics()
-        self.fluxes(step)
-        self.update(diagnosing, n)
+        self.passes.fluxes(step)
+        self.passes.update(diagnosing, n)
 
     @ti.kernel
     def diagnose(self):
@@ -239,6 +236,13 @@ class SPDESolver(Fluxes, Solver):
         self.zero_diagnostics()
         for J in ti.grouped(self.q):
             self.diagnose_cell(J)
+
+    @ti.func
+    def upper(self, J, a: ti.template()):
+        """Index in :attr:`flux` of the upper face of cell ``J`` (member index first) along axis
+        ``a``: :func:`grid.across` the upper face (periodic: face ``n_a`` is face 0)."""
+        up, _ = across(self.grid, J, a, 1)
+        return up
 
     @ti.func
     def zero_diagnostics(self):
