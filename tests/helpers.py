@@ -31,11 +31,11 @@ def trap_tails(method: str, members: int, t_end: float, cells: int = 40):
     the scene's potential by a central difference, exact for a quadratic)."""
     from ti_dk import load_scene
     from ti_dk.core import theory
-    from ti_dk.hybrid import regrid
+    from ti_dk.hybrid import clustering
 
     scene = load_scene("trap1d", method=method, cells=[cells], ppc=400 / cells, t_end=t_end, ensemble=members,
                        t_equil=None, output_times=[], regrid_interval=0)
-    covered = np.flatnonzero(regrid.region(scene.initial_ppc, scene.hybrid.regrid, (False,))[1])
+    covered = np.flatnonzero(clustering.region(scene.initial_ppc, scene.hybrid.regrid, (False,))[1])
     lam = float(scene.initial_ppc[covered].sum()) if method == "hybrid" else 0.0
     h, U = 1e-3, scene.potential
     k = float((U(np.array(0.5 + h)) - 2 * U(np.array(0.5)) + U(np.array(0.5 - h))) / h**2)

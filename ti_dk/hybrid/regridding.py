@@ -5,7 +5,7 @@ import math
 
 import numpy as np
 
-from . import regrid
+from . import clustering
 
 # one record per regrid; on_demand: members regridded off schedule (0: a scheduled regrid of all)
 REGRID_LOG = ("step", "boxes", "covered_cells", "efficiency", "created", "removed", "on_demand")
@@ -48,7 +48,7 @@ class Regridding:
             self._retile(n, math.inf, True)
             return
         ppc = self._content()
-        tags = regrid.tag(ppc, self.params.threshold)  # once: the extension and its log's count
+        tags = clustering.tag(ppc, self.params.threshold)  # once: the extension and its log's count
         masks, members = self.regions.plan_extension(tags)
         self._set_region(masks, n, ppc)
         self._log(n, int(tags.sum()), members)

@@ -10,7 +10,7 @@ from .. import pools
 from ..methods.fv import SPDESolver
 from ..methods.particles import Walker
 from ..methods.solver import RegionSolver
-from . import regrid
+from . import clustering
 from .ghosts import Sampler
 from .region import Region
 from .regridding import REGRID_LOG, Regridding
@@ -62,7 +62,7 @@ class HybridSolver(Regridding, RegionSolver):
     the piecewise-constant initial condition, so those particles lie uniformly in their cells.
     """
 
-    def __init__(self, spde: SPDESolver, params: regrid.RegridParams, regrid_interval: int,
+    def __init__(self, spde: SPDESolver, params: clustering.RegridParams, regrid_interval: int,
                  ghost_profile: str = "mean", substeps: int = 1, pool_layout: str = "flat"):
         grid = spde.grid
         self.profile, self.substeps = ghost_profile, substeps
@@ -84,7 +84,7 @@ class HybridSolver(Regridding, RegionSolver):
         self._low: int | None = None  # uncovered cells below params.trigger at the last diagnose (None: not known)
 
     @property
-    def boxes(self) -> list[list[regrid.Box]]:
+    def boxes(self) -> list[list[clustering.Box]]:
         """Each member's region as boxes."""
         return self.regions.boxes
 
