@@ -55,7 +55,7 @@ def test_fixed_region_conserves_mass(cells, boundary):
 def test_scheduled_regrid_sorts_the_particles_by_cell(cells):
     # a scheduled regrid of boxes leaves each member's particles of a flat pool in cell order (Coupling.sort),
     # every particle in a covered cell and as many in each as the cell's density says (tiles skip the sort
-    # where no member's region changed: Regridding._retile)
+    # where no member's region changed: Regridder._retile)
     scene = load_scene("ellipse2d", method="hybrid", cells=cells, regrid_interval=3, ensemble=2, ppc_outer=12,
                        ppc_inner=6, threshold=4.0, seed=6, region="boxes") if len(cells) == 2 else \
         load_scene("void1d", method="hybrid", cells=cells, regrid_interval=3, ensemble=2, ppc=8, seed=6,
