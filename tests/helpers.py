@@ -76,6 +76,27 @@ def poisson_two_sided(mu: float, k: int) -> float:
     return min(1.0, 2 * min(below, 1.0 - below + pmf[-1]))
 
 
+def run_steps(s, steps, check=None):
+    """Step ``s``; return every diagnostic per step, index 0 being the state after the start."""
+    rows = [s.diagnostics()]
+    for n in range(steps):
+        s.step(n)
+        rows.append(s.diagnostics())
+        if check:
+            check(s)
+    return {k: np.array([r[k] for r in rows]) for k in rows[0]}
+
+
+def covered_nonnegative(s):
+    """A hybrid solver's covered cells: non-negative, whole particles, and as many as its pool holds."""
+    q, region = s.density(), s.region()
+    assert np.all(q[region] >= 0)
+    # covered cells hold whole particles, and they are the particles in the pool
+    counts = q[region] * s.grid.cell_volume
+    assert np.allclose(counts, np.round(counts), atol=1e-9)
+    assert round(counts.sum()) == s.diagnostics()["particles"]
+
+
 def as_counts(stats, row, vol):
     """One statistics row in particle counts per cell (the units of the exact answers)."""
     return {"mean": stats.mean[row] * vol, "variance": stats.variance[row] * vol**2,
