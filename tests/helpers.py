@@ -31,11 +31,11 @@ def trap_tails(method: str, members: int, t_end: float, cells: int = 40):
     the scene's potential by a central difference, exact for a quadratic)."""
     from ti_dk import load_scene
     from ti_dk.core import theory
-    from ti_dk.hybrid import regrid
+    from ti_dk.hybrid import clustering
 
     scene = load_scene("trap1d", method=method, cells=[cells], ppc=400 / cells, t_end=t_end, ensemble=members,
                        t_equil=None, output_times=[], regrid_interval=0)
-    covered = np.flatnonzero(regrid.region(scene.initial_ppc, scene.hybrid.regrid, (False,))[1])
+    covered = np.flatnonzero(clustering.region(scene.initial_ppc, scene.hybrid.regrid, (False,))[1])
     lam = float(scene.initial_ppc[covered].sum()) if method == "hybrid" else 0.0
     h, U = 1e-3, scene.potential
     k = float((U(np.array(0.5 + h)) - 2 * U(np.array(0.5)) + U(np.array(0.5 - h))) / h**2)
@@ -74,6 +74,27 @@ def poisson_two_sided(mu: float, k: int) -> float:
         pmf.append(pmf[-1] * mu / j)
     below = sum(pmf)
     return min(1.0, 2 * min(below, 1.0 - below + pmf[-1]))
+
+
+def run_steps(s, steps, check=None):
+    """Step ``s``; return every diagnostic per step, index 0 being the state after the start."""
+    rows = [s.diagnostics()]
+    for n in range(steps):
+        s.step(n)
+        rows.append(s.diagnostics())
+        if check:
+            check(s)
+    return {k: np.array([r[k] for r in rows]) for k in rows[0]}
+
+
+def covered_nonnegative(s):
+    """A hybrid solver's covered cells: non-negative, whole particles, and as many as its pool holds."""
+    q, region = s.density(), s.region()
+    assert np.all(q[region] >= 0)
+    # covered cells hold whole particles, and they are the particles in the pool
+    counts = q[region] * s.grid.cell_volume
+    assert np.allclose(counts, np.round(counts), atol=1e-9)
+    assert round(counts.sum()) == s.diagnostics()["particles"]
 
 
 def as_counts(stats, row, vol):

@@ -8,8 +8,8 @@ import pytest
 from ti_dk import load_scene
 from ti_dk.control.registry import make_solver
 from ti_dk.core.grid import DIRICHLET, NEUMANN, PERIODIC, Grid
+from ti_dk.hybrid.clustering import RegridParams, mask
 from ti_dk.hybrid.region import Region
-from ti_dk.hybrid.regrid import RegridParams, mask
 
 
 def _ring_reference(covered, boundary):

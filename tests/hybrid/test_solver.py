@@ -1,5 +1,6 @@
-"""The AMAR hybrid against exact answers: conservation to round-off, the regrid ledger, the
-Poisson-binomial void, the harmonic trap's tails and positivity (box layout and ghost ring: test_region.py)."""
+"""The AMAR hybrid against exact answers: conservation to round-off, the Dirichlet ledger, the
+Poisson-binomial void, the harmonic trap's tails, pool layouts bit for bit (box layout and ghost ring:
+test_region.py; regrids, their ledger and positivity: test_regridder.py)."""
 import warnings
 
 import numpy as np
@@ -10,31 +11,11 @@ from ti_dk.core import theory
 from ti_dk.scene.schema import ClampWarning
 from ti_dk.control.registry import make_solver
 
-from ..helpers import as_counts, digest_on_threads, tail_scores, trap_tails
+from ..helpers import as_counts, covered_nonnegative, digest_on_threads, run_steps, tail_scores, trap_tails
 
 
 def _solver(scene):
     return make_solver(scene, scene.initial_ppc)
-
-
-def _run_steps(s, steps, check=None):
-    """Step ``s``; return every diagnostic per step, index 0 being the state after the start."""
-    rows = [s.diagnostics()]
-    for n in range(steps):
-        s.step(n)
-        rows.append(s.diagnostics())
-        if check:
-            check(s)
-    return {k: np.array([r[k] for r in rows]) for k in rows[0]}
-
-
-def _covered_nonnegative(s):
-    q, region = s.density(), s.region()
-    assert np.all(q[region] >= 0)
-    # covered cells hold whole particles, and they are the particles in the pool
-    counts = q[region] * s.grid.cell_volume
-    assert np.allclose(counts, np.round(counts), atol=1e-9)
-    assert round(counts.sum()) == s.diagnostics()["particles"]
 
 
 @pytest.mark.parametrize("cells,boundary", [([100], "periodic"), ([24, 20], "neumann"), ([10, 12, 8], "periodic"),
@@ -46,61 +27,9 @@ def test_fixed_region_conserves_mass(cells, boundary):
                        ppc=8, seed=3, tile=1)
     s = _solver(scene)
     assert 0 < s.region().mean() < 1
-    mass = _run_steps(s, 40, _covered_nonnegative)["mass"]
+    mass = run_steps(s, 40, covered_nonnegative)["mass"]
     assert np.abs(mass / mass[0] - 1).max() < 1e-12
     assert s.diagnostics()["particles"] > 0
-
-
-@pytest.mark.parametrize("cells", [[30, 26], [10, 12, 8]])
-def test_scheduled_regrid_sorts_the_particles_by_cell(cells):
-    # a scheduled regrid of boxes leaves each member's particles of a flat pool in cell order (Coupling.sort),
-    # every particle in a covered cell and as many in each as the cell's density says (tiles skip the sort
-    # where no member's region changed: Regridding._retile)
-    scene = load_scene("ellipse2d", method="hybrid", cells=cells, regrid_interval=3, ensemble=2, ppc_outer=12,
-                       ppc_inner=6, threshold=4.0, seed=6, region="boxes") if len(cells) == 2 else \
-        load_scene("void1d", method="hybrid", cells=cells, regrid_interval=3, ensemble=2, ppc=8, seed=6,
-                   region="boxes")
-    s = _solver(scene)
-    for n in range(5):
-        s.step(n)
-    s.regrid(5)
-    x, n_real = s.pool.x.to_numpy()[s.cur], s.pool.n.to_numpy()[s.cur]  # slot order (occupied() sorts by id)
-    q, region = s.density() * s.grid.cell_volume, s.region()
-    for e in range(2):
-        cell = np.minimum((x[e, :n_real[e]] / s.grid.dx).astype(int), np.array(cells) - 1)
-        flat = np.ravel_multi_index(tuple(cell.T), tuple(cells))
-        assert n_real[e] > 0 and np.all(np.diff(flat) >= 0)
-        counts = np.bincount(flat, minlength=np.prod(cells)).reshape(cells)
-        assert np.all(region[e][counts > 0])
-        assert np.array_equal(counts[region[e]], np.round(q[e][region[e]]).astype(int))
-
-
-def test_regrid_ledger_and_region_follows_density():
-    # 2D ellipses: the empty ring is tagged; as it fills cells leave the region and, as the inner
-    # ellipse empties, new cells enter it
-    scene = load_scene("ellipse2d", method="hybrid", cells=[40, 40], regrid_interval=4, ppc_outer=12,
-                       ppc_inner=6, threshold=4.0, t_end=0.01, seed=5)
-    s = _solver(scene)
-    start = s.region()
-    ever, left = start.copy(), np.zeros_like(start)
-
-    def track(s):
-        _covered_nonnegative(s)
-        r = s.region()
-        assert np.array_equal(r, s.regions.covered.to_numpy() != 0)  # the host's copy is the device's mask
-        left[...] |= start & ~r
-        ever[...] |= r
-
-    h = _run_steps(s, 120, track)
-    mass, change = h["mass"], h["regrid_change"]
-    # exact ledger: the only change of the total is what regrids created minus what they removed
-    assert np.allclose(np.diff(mass), change[1:], rtol=0, atol=1e-9 * mass[0])
-    assert any(change[1:])
-    assert left.sum() > 20 and (ever & ~start).sum() > 20
-    log = s.regrids
-    assert [r["step"] for r in log if not r["on_demand"]] == list(range(0, 120, 4))
-    assert all(r["step"] % 4 for r in log if r["on_demand"])
-    assert sum(r["created"] - r["removed"] for r in log[1:]) == pytest.approx(change.sum(), abs=1e-9)
 
 
 def test_dirichlet_ledger():
@@ -112,7 +41,7 @@ def test_dirichlet_ledger():
     s = _solver(scene)
     region = s.region()[0]
     assert region[0] and not region[-1]
-    h = _run_steps(s, 200, _covered_nonnegative)
+    h = run_steps(s, 200, covered_nonnegative)
     mass, inflow = h["mass"], h["boundary_inflow"][1:]
     assert np.allclose(np.diff(mass), inflow, rtol=0, atol=1e-9 * mass[0])
     assert inflow.sum() != 0
@@ -263,51 +192,6 @@ def test_the_trap_tails_follow_the_walks_own_law():
     bad = [r for r in rows if max(abs(r["z_mean"] or 0), abs(r["z_var"] or 0)) >= 3
            or (r["p_value"] is not None and r["p_value"] < 0.0027)]
     assert len(cells) >= 20 and not bad, bad
-
-
-@pytest.mark.slow  # 200 members, 88 steps with regrids
-def test_composite_stays_positive_with_regridding():
-    # 200 members of a small ellipse2d: without the on-demand regrid, uncovered cells next to the
-    # region drift below a particle between scheduled regrids and can go negative
-    scene = load_scene("ellipse2d", cells=[48, 48], ensemble=200, compare="none", seed=4)
-    s = _solver(scene)
-    h = _run_steps(s, scene.n_steps, _covered_nonnegative)
-    assert h["negative_cells"].max() == 0 and h["min_density"].min() >= 0
-    assert np.allclose(np.diff(h["mass"]), h["regrid_change"][1:], rtol=0, atol=1e-9 * h["mass"][0])
-
-
-def test_regrid_on_demand():
-    # a region kept for 1000 steps cannot follow an emptying ellipse: the cells that fall below
-    # the threshold are covered on demand, before the step, and the rest of the region is kept
-    scene = load_scene("ellipse2d", method="hybrid", cells=[40, 40], regrid_interval=1000, ppc_outer=12,
-                       ppc_inner=6, threshold=4.0, t_end=0.01, seed=5)
-    s = _solver(scene)
-    start = s.region()
-    vol = s.grid.cell_volume
-    for n in range(60):
-        before = s.region()
-        s.step(n)
-        if n > 0 and s.regrids[-1]["step"] == n:  # extended at the start of this step
-            assert s.regrids[-1]["on_demand"] == 1 and np.all(s.region() >= before)
-        assert s.diagnostics()["negative_cells"] == 0
-    demand = [r for r in s.regrids if r["on_demand"]]
-    assert len(demand) > 3 and (s.region() & ~start).sum() > 20
-    # an extension, where one is due, leaves no uncovered cell below the threshold (with tiles, which
-    # cover whole tiles around the low cells, none was due at step 60 of this run)
-    if s.regions.count_low(s.spde, 4.0, False) > 0:
-        s.extend(60)
-    q = s.density() * vol
-    assert q[~s.region()].min() >= 4.0
-    # hysteresis: with regrid_floor = 0.5 an extension is due below 2 particles but covers
-    # everything below 4, so it comes less often; no uncovered cell is below 2 after it
-    half = _solver(scene.replace(regrid_floor=0.5))
-    for n in range(60):
-        half.step(n)
-    assert 0 < sum(r["on_demand"] > 0 for r in half.regrids) < len(demand)
-    if half.regions.count_low(half.spde, 2.0, False):  # due before step 60
-        half.extend(60)
-    q = half.density() * vol
-    assert q[~half.region()].min() >= 2.0
 
 
 # -- pool layouts: where particles are stored changes no bit -------------------------------------

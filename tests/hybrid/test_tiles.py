@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from ti_dk import load_scene
-from ti_dk.hybrid import regrid, tiles
+from ti_dk.hybrid import clustering, tiles
 from ti_dk.control.registry import make_solver
 from ti_dk.scene.load import InputWarning
 
@@ -25,8 +25,8 @@ def _expected(content, old, threshold, keep, side, buffer, periodic):
     """The tile rule from its definition: a tile is flagged where a cell of it, grown by ``buffer``,
     is below ``threshold``, or where it holds a covered cell (``old``) and one below ``keep``."""
     ring = (None, *periodic)
-    low = regrid.grow(content < threshold, buffer, ring)
-    stay = regrid.grow(content < keep, buffer, ring)
+    low = clustering.grow(content < threshold, buffer, ring)
+    stay = clustering.grow(content < keep, buffer, ring)
     flags = _tiles_any(low, side) | (_tiles_any(old, side) & _tiles_any(stay, side))
     return tiles.spread(flags, side, content.shape[1:]), int(low.sum())
 
@@ -48,8 +48,8 @@ def test_the_blob_core_is_left_to_the_spde_from_the_start():
     s = make_solver(scene, scene.initial_ppc)
     content = np.broadcast_to(scene.initial_ppc, (1, 48, 48))[0]  # what the first regrid tags (then sampled)
     region = s.region()[0]
-    tagged = regrid.tag(content, 5.0)
-    core = ~regrid.grow(tagged, 1, (False, False))  # at or above the threshold beyond the buffer
+    tagged = clustering.tag(content, 5.0)
+    core = ~clustering.grow(tagged, 1, (False, False))  # at or above the threshold beyond the buffer
     assert np.all(region[tagged])  # every tagged cell is covered, and exactly the tiles that hold one
     assert np.array_equal(region, tiles.spread(_tiles_any(~core[None], 4), 4, (48, 48))[0])
     assert (~region).sum() == 12 * 16  # the core: 12 tiles of 4 × 4 cells (as on 96 × 96 at σ = 0.05)
@@ -106,7 +106,7 @@ def test_tiles_as_boxes_are_the_region(side):
     masks[1, 0, 0] ^= True  # a region not made of tiles: the cells of its partial tile are boxes of one cell
     for e in range(2):
         bs = tiles.boxes(masks[e], side)
-        assert np.array_equal(regrid.mask(bs, (10, 13)), masks[e])
+        assert np.array_equal(clustering.mask(bs, (10, 13)), masks[e])
         cover = np.zeros((10, 13), dtype=int)
         for lo, hi in bs:
             cover[lo[0]:hi[0], lo[1]:hi[1]] += 1

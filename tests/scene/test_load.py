@@ -93,7 +93,7 @@ def test_parse_value():
 def test_every_key_declared_once_with_doc_and_defaults_from_regrid():
     from ti_dk.scene.schema import INIT_KEYS, KEYS, SECTIONS, Scene
     from ti_dk.scene.schema import keys_help
-    from ti_dk.hybrid.regrid import RegridParams
+    from ti_dk.hybrid.clustering import RegridParams
 
     fields = [f.metadata.get("flat") or f.name for cls in (*SECTIONS.values(), Scene)
               for f in dataclasses.fields(cls) if "key" in f.metadata]

@@ -133,7 +133,7 @@ def across(grid: ti.template(), J, a: ti.template(), side: ti.template()):
     ghost-layer index (−1 or ``n_a``) and ``False``: the caller mirrors the cell (Neumann: no
     gradient, no flux) or takes the reservoir density (Dirichlet). For ``side = 1`` the result
     is also the index of the upper face of ``J`` in a face array (the periodic image of face
-    ``n_a`` being face 0). ``regrid.grow`` applies the same rule to NumPy masks with ``np.roll``.
+    ``n_a`` being face 0). ``clustering.grow`` applies the same rule to NumPy masks with ``np.roll``.
     """
     K = J
     inside = True

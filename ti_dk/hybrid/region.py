@@ -3,7 +3,7 @@ flat lists of ring and covered cells; on the host a copy of the mask, the ghost 
 (from which the lists are made) and each member's boxes.
 
 The region comes from tiles flagged on the device (:mod:`.tiles`) or from Berger–Rigoutsos boxes
-(:mod:`regrid`, host NumPy); everything downstream reads the cell mask, so nothing depends on how
+(:mod:`.clustering`, host NumPy); everything downstream reads the cell mask, so nothing depends on how
 the region was cut into boxes.
 """
 
@@ -12,7 +12,7 @@ import math
 import numpy as np
 import taichi as ti
 
-from . import regrid, tiles
+from . import clustering, tiles
 from ..core.grid import DIRICHLET, PERIODIC, Grid
 
 
@@ -34,7 +34,7 @@ class Region:
     flat (C-order) indices, ascending, so a loop over them visits cells in a fixed order.
     """
 
-    def __init__(self, grid: Grid, ensemble: int, params: regrid.RegridParams):
+    def __init__(self, grid: Grid, ensemble: int, params: clustering.RegridParams):
         self.grid, self.ensemble, self.params = grid, ensemble, params
         self.dim, self.n = grid.dim, grid.cells
         self.padded = tuple(m + 2 for m in self.n)  # the grid plus one layer of ghost cells per side
@@ -47,13 +47,13 @@ class Region:
         self.n_ring, self.n_cover = 0, 0  # lengths of the two lists
         self.tile = tiles.side_for(params.tile, self.n)  # the tiles' side in cells
         self.tiles = tiles.Tiles(grid, E, self.tile, params.buffer) if params.region == "tiles" else None
-        self._boxes: list[list[regrid.Box]] = [[] for _ in range(E)]  # boxes: each member's region
+        self._boxes: list[list[clustering.Box]] = [[] for _ in range(E)]  # boxes: each member's region
         self._mask = np.zeros((E, *n), dtype=bool)  # the host's copy of `covered` (read at every regrid)
         self.ring_mask = np.zeros((E, *self.padded), dtype=bool)  # host: the ghost cells (padded index = cell + 1)
 
     # -- host -----------------------------------------------------------------------------
     @property
-    def boxes(self) -> "list[list[regrid.Box]] | tiles.MemberBoxes":
+    def boxes(self) -> "list[list[clustering.Box]] | tiles.MemberBoxes":
         """Each member's region as boxes: Berger–Rigoutsos's, or one per tile (made when asked)."""
         return self._boxes if self.tiles is None else tiles.MemberBoxes(self._mask, self.tile)
 
@@ -83,35 +83,35 @@ class Region:
         return _joined(new, gone), new.size, gone.size
 
     def plan(self, ppc: np.ndarray) -> tuple[np.ndarray, int]:
-        """A new region for every member from its SPDE content ``ppc`` (:func:`regrid.region`;
+        """A new region for every member from its SPDE content ``ppc`` (:func:`clustering.region`;
         members with the same tags are clustered once): the masks, and how many cells were tagged.
         The boxes are kept."""
         masks = np.zeros(ppc.shape, dtype=bool)
         cache: dict[bytes, list] = {}
         tagged = 0
         for e in range(self.ensemble):
-            self._boxes[e], masks[e], t = regrid.region(ppc[e], self.params, self.periodic, cache)
+            self._boxes[e], masks[e], t = clustering.region(ppc[e], self.params, self.periodic, cache)
             tagged += t
         return masks, tagged
 
     def plan_extension(self, tags: np.ndarray) -> tuple[np.ndarray, int]:
-        """The region plus its uncovered cells among ``tags`` (:func:`regrid.tag` of the content),
+        """The region plus its uncovered cells among ``tags`` (:func:`clustering.tag` of the content),
         grown by the buffer and clustered: the masks, and how many members
         grew. The new boxes are added to the kept ones. (From the content the caller read for
         the regrid anyway: a device mask of the low cells cost a grid-sized read per extension.)"""
         masks = self.mask()
         low = tags & ~masks
-        add = regrid.grow(low, self.params.buffer, (None, *self.periodic))
+        add = clustering.grow(low, self.params.buffer, (None, *self.periodic))
         members = np.flatnonzero(low.reshape(self.ensemble, -1).any(axis=1))
         for e in members:
-            boxes = regrid.cluster(add[e], self.params)
+            boxes = clustering.cluster(add[e], self.params)
             self._boxes[e] = list(self._boxes[e]) + boxes
-            masks[e] |= regrid.mask(boxes, self.n)
+            masks[e] |= clustering.mask(boxes, self.n)
         return masks, len(members)
 
     def grown(self, masks: np.ndarray) -> np.ndarray:
         """The region ``masks`` and its ghost ring (the cells whose particles it keeps)."""
-        return regrid.grow(masks, 1, (None, *self.periodic))
+        return clustering.grow(masks, 1, (None, *self.periodic))
 
     def lists(self, grown: np.ndarray | None = None) -> None:
         """Ghost ring and the flat lists of ring and covered cells, from ``covered`` (its host copy;
@@ -145,7 +145,7 @@ class Region:
                     others = tuple(p for b, p in enumerate(self.periodic) if b != a)
                     index = list(inner)
                     index[a + 1] = 0 if side == 0 else -1
-                    out[tuple(index)] = regrid.grow(layer, 1, (None, *others))
+                    out[tuple(index)] = clustering.grow(layer, 1, (None, *others))
         return out
 
     def state(self) -> dict[str, np.ndarray]:

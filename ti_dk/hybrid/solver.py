@@ -10,23 +10,36 @@ from .. import pools
 from ..methods.fv import SPDESolver
 from ..methods.particles import Walker
 from ..methods.solver import RegionSolver
-from . import regrid
+from . import clustering
 from .ghosts import Sampler
 from .region import Region
-from .regridding import REGRID_LOG, Regridding
+from .regridder import Regridder
 from .sync import Coupling
 
 
-def _clock() -> float:
-    """Seconds, after the device has finished what was launched (kernels may run asynchronously)."""
+def _laps(timing: dict[str, float]):
+    """A stopwatch over one step: each ``lap(part)`` adds to ``timing[part]`` the seconds since the
+    last lap (or since the stopwatch was made), read after the device has finished what was
+    launched (kernels may run asynchronously)."""
     ti.sync()
-    return time.perf_counter()
+    last = time.perf_counter()
+
+    def lap(part: str) -> None:
+        nonlocal last
+        ti.sync()
+        now = time.perf_counter()
+        timing[part] += now - last
+        last = now
+
+    return lap
 
 
-class HybridSolver(Regridding, RegionSolver):
+class HybridSolver(RegionSolver):
     r"""SPDE on the whole grid coupled to particles in a region (paper §3.1–3.2).
 
-    One step ``n → n+1``:
+    One step ``n → n+1`` runs the paper's three stages: a regrid when one is due
+    (:meth:`Regridder.when_due`); the ghost ring filled and the SPDE advanced; the particle
+    sub-steps and the synchronisation. In detail:
 
     1. the ghost ring (cells outside the region within Chebyshev distance 1 of it, and Dirichlet
        reservoir cells beyond covered boundary cells) gets ``ℓ`` particles plus one with
@@ -52,22 +65,32 @@ class HybridSolver(Regridding, RegionSolver):
     cell, index, birth step), never on its slot. With a fixed region and periodic or Neumann
     walls, the total number of particles (SPDE mass plus particles) is conserved to round-off.
 
-    Regridding (every ``regrid_interval`` steps, at the start, and on demand for a member that
-    starts a step with an uncovered cell below ``regrid_floor · threshold``, see :meth:`extend`;
-    0 keeps the first region): tag and
-    buffer, then tiles flagged on the device with hysteresis (:mod:`.tiles`, the default) or
-    Berger–Rigoutsos per member on the host (``region = "boxes"``); particles in cells that stay covered are kept, cells
-    that leave the region keep their count as density, newly covered cells are sampled from the
-    SPDE (the only step that changes the total; logged in ``regrids``). At the start the state is
-    the piecewise-constant initial condition, so those particles lie uniformly in their cells.
+    The solver is made of parts: the region (:class:`Region`), the sampling of ghosts and newly
+    covered cells (:class:`Sampler`), the walk and synchronisation (:class:`Coupling`), and the
+    regrids, scheduled and on demand (:class:`Regridder`, which moves the particles to a new
+    region); the particles lie in a pool (:mod:`ti_dk.pools`).
+
+    Parameters
+    ----------
+    spde : SPDESolver
+        The SPDE on the whole grid (built with ``track_mean`` for the ghosts' q̄ profile).
+    params : RegridParams
+        The region's parameters (:class:`~.clustering.RegridParams`).
+    regrid_interval : int
+        Steps between scheduled regrids (0: the first region is kept).
+    ghost_profile : str
+        The in-cell profile of sampled particles (:class:`~.incell.InCell`).
+    substeps : int
+        Particle sub-steps per SPDE step.
+    pool_layout : str
+        Where the particles are stored: ``flat`` or ``pointer`` (:data:`ti_dk.pools.LAYOUTS`).
     """
 
-    def __init__(self, spde: SPDESolver, params: regrid.RegridParams, regrid_interval: int,
+    def __init__(self, spde: SPDESolver, params: clustering.RegridParams, regrid_interval: int,
                  ghost_profile: str = "mean", substeps: int = 1, pool_layout: str = "flat"):
         grid = spde.grid
         self.profile, self.substeps = ghost_profile, substeps
-        self.spde, self.params, self.regrid_interval = spde, params, regrid_interval
-        self.grid, self.dt, self.ensemble, self.real = grid, spde.dt, spde.ensemble, spde.real
+        self.spde, self.grid, self.dt, self.ensemble, self.real = spde, grid, spde.dt, spde.ensemble, spde.real
         self.dim, self.n = grid.dim, grid.cells
         self.walker = Walker(grid, spde.dt / substeps, spde.real, spde.key, spde.member0)  # one particle sub-step
         self.regions = Region(grid, self.ensemble, params)
@@ -76,15 +99,16 @@ class HybridSolver(Regridding, RegionSolver):
         self.coupling = Coupling(spde, self.regions, self.sampler, self.walker)
         self.pool = pools.make(pool_layout, grid, self.ensemble, self.real)  # flat or pointer (pools.LAYOUTS)
         self.cur = 0  # the pool buffer holding the particles between steps
-        self.regrids: list[dict] = []  # one record per regrid
-        self._change = 0.0  # created − removed at this step's regrid
-        self._removed = 0.0  # SPDE content Σ q V_c of the cells the last regrid covered anew
-        self._created = 0  # particles the last regrid sampled into them
+        self.regridder = Regridder(self, params, regrid_interval)  # the schedule, the regrids, their log
         self.timing = {"spde": 0.0, "particles": 0.0, "regrid": 0.0}  # seconds spent in each part
-        self._low: int | None = None  # uncovered cells below params.trigger at the last diagnose (None: not known)
 
     @property
-    def boxes(self) -> list[list[regrid.Box]]:
+    def regrids(self) -> list[dict]:
+        """One record per regrid (:data:`~.regridder.REGRID_LOG`)."""
+        return self.regridder.log
+
+    @property
+    def boxes(self) -> list[list[clustering.Box]]:
         """Each member's region as boxes."""
         return self.regions.boxes
 
@@ -109,46 +133,44 @@ class HybridSolver(Regridding, RegionSolver):
         self.regrid(0)
         self.diagnose()
 
+    def regrid(self, n: int) -> None:
+        """A new region from the SPDE at step ``n`` (:meth:`Regridder.regrid`)."""
+        self.regridder.regrid(n)
+
+    def extend(self, n: int) -> None:
+        """Cover, before step ``n``, the uncovered cells below ``threshold`` (:meth:`Regridder.extend`)."""
+        self.regridder.extend(n)
+
+    def set_region(self, masks: np.ndarray, n: int) -> None:
+        """Make ``masks`` (``(ensemble, *cells)`` booleans) the particle region at step ``n``, between
+        steps (:meth:`Regridder.set_region`)."""
+        self.regridder.set_region(masks, n)
+
     def diagnose(self) -> None:
         """The SPDE's diagnostics (:meth:`SPDESolver.diagnose`) and, in the same pass, how many
-        uncovered cells are below ``regrid_floor · threshold`` (:meth:`Region.count_low`), which
+        uncovered cells are below ``regrid_floor · threshold`` (:meth:`Regridder.count_low`), which
         the next step's extension check reads."""
-        self._low = self.regions.count_low(self.spde, self.params.trigger, True)
-
-    def _extension_due(self) -> bool:
-        """Whether an uncovered cell holds fewer than ``regrid_floor · threshold`` particles (counted
-        at the end of the last step, or now where that step was a plain SPDE step or a state was loaded)."""
-        if self._low is None:
-            self._low = self.regions.count_low(self.spde, self.params.trigger, False)
-        return self._low > 0
+        self.regridder.count_low(True)
 
     def step(self, n: int) -> None:
-        """Advance from step ``n`` to ``n + 1`` (see the class docstring)."""
-        self._change = 0.0
-        if self.regrid_interval and n > 0:
-            t = _clock()
-            if n % self.regrid_interval == 0:
-                self.regrid(n)
-            elif self.params.regrid_floor > 0 and self._extension_due():
-                self.extend(n)
-            self.timing["regrid"] += _clock() - t
-        t0 = _clock()
-        self._low = None  # q changes from here
+        """Advance from step ``n`` to ``n + 1`` in the paper's three stages (the class docstring's 1–4),
+        the seconds of each part added to :attr:`timing`."""
+        lap = _laps(self.timing)
+        self.regridder.when_due(n)  # stage 1: the regrid, when due
+        lap("regrid")
         if self.n_cover == 0:  # no particle region: a plain SPDE step
             self.spde.step(n)
-            self.timing["spde"] += _clock() - t0
+            lap("spde")
             return
-        if self.substeps > 1:
+        if self.substeps > 1:  # stage 2: the ghosts filled from q^n, the SPDE advanced (steps 1, 2)
             self.sampler.q_old.copy_from(self.spde.q)
-        self._fill_ghosts(n * self.substeps, 0.0, self._tilt_on(n))
-        t1 = _clock()
+        self._fill_ghosts(n * self.substeps, 0.0, self.tilt_on(n))
+        lap("particles")
         self.spde.advance(n)
-        t2 = _clock()
-        self._particle_steps(n)
+        lap("spde")
+        self._particle_steps(n)  # stage 3: the particle sub-steps and the synchronisation (steps 3, 4)
         self.diagnose()
-        t3 = _clock()
-        self.timing["spde"] += t2 - t1
-        self.timing["particles"] += (t1 - t0) + (t3 - t2)
+        lap("particles")
 
     def _particle_steps(self, n: int) -> None:
         """Steps 3 and 4 after the SPDE's: S1, the k particle sub-steps of Δt/k (ghosts from q
@@ -158,14 +180,14 @@ class HybridSolver(Regridding, RegionSolver):
             if s > 0:
                 self._fill_ghosts(n * k + s, s / k, 1)
             c.cross(self.pool, self.cur, n * k + s, int(s == 0), int(s == k - 1), self.n_ring, self.n_cover)
-            self._compact()
+            self.compact()
 
-    def _compact(self) -> None:
+    def compact(self) -> None:
         """Keep the marked particles (in place, or in the other buffer: the pointer layout, which may
         need a larger pool)."""
         self.pool, self.cur = self.pool.compacted(self.cur)
 
-    def _tilt_on(self, n: int) -> int:
+    def tilt_on(self, n: int) -> int:
         """Whether particles sampled at step ``n`` are tilted: not at the start with ``mean``, where
         q̄ is the piecewise-constant initial condition (particles lie uniformly in each cell)."""
         return int(self.profile != "mean" or n > 0)
@@ -187,17 +209,14 @@ class HybridSolver(Regridding, RegionSolver):
         region = self.regions.state()
         st = {f"spde_{k}": v for k, v in self.spde.state().items()}
         st |= {"covered": region["covered"], "n_real": n, "x": x, "pid": pid, "boxes": region["boxes"]}
-        for k in REGRID_LOG:
-            st[f"regrid_{k}"] = np.array([r[k] for r in self.regrids])
-        return st
+        return st | self.regridder.state()
 
     def load_state(self, st: dict[str, np.ndarray]) -> None:
         self.spde.load_state({k[5:]: v for k, v in st.items() if k.startswith("spde_")})
         self.regions.load_state(st)
-        self._low = None
         self.pool = self.pool.restored(st["x"], st["pid"], st["n_real"], self.regions.grown(self.regions.mask()))
         self.cur = 0
-        self.regrids = [{k: st[f"regrid_{k}"][i].item() for k in REGRID_LOG} for i in range(len(st["regrid_step"]))]
+        self.regridder.load_state(st)
 
     def density(self) -> np.ndarray:
         return self.spde.density()
@@ -213,5 +232,5 @@ class HybridSolver(Regridding, RegionSolver):
             d["boundary_inflow"] = d["boundary_inflow"] + c.wall_inflow[None] + c.p_inflow[None]
             d["clamped_steps"] = int(c.clamped[None])
         d["particles"] = pools.total(self.pool.kept)
-        d["regrid_change"] = self._change
+        d["regrid_change"] = self.regridder.change
         return d

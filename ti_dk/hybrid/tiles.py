@@ -2,10 +2,10 @@
 
 The grid is cut into tiles of ``tile`` cells a side (the last tile along an axis may be cut short
 by the grid). One kernel flags every tile of every member from the tag rule of
-:func:`regrid.tag` grown by ``buffer`` (:meth:`Tiles.flag`), and the host reads back only the
+:func:`clustering.tag` grown by ``buffer`` (:meth:`Tiles.flag`), and the host reads back only the
 flags, ``ensemble × tiles`` bytes. Every tile that holds a tag is covered whole, as SAMRAI's
 ``TileClustering`` and Uintah's ``TiledRegridder`` make every tile with a tag a box; unlike
-Berger–Rigoutsos (:func:`regrid.cluster`, ``region = "boxes"``, the paper's), the region then
+Berger–Rigoutsos (:func:`clustering.cluster`, ``region = "boxes"``, the paper's), the region then
 follows the tags to within a tile, whatever the box-cutting settings.
 
 Hysteresis: a covered tile stays while any of its cells, grown by ``buffer``, holds fewer than
@@ -20,7 +20,7 @@ import numpy as np
 import taichi as ti
 
 from ..core.grid import PERIODIC, Grid
-from .regrid import Box
+from .clustering import Box
 DEFAULT_SIDE = {1: 1, 2: 4, 3: 4}  # tile side in cells where ``tile = 0``, by dimension (1D: the tags exactly)
 
 
@@ -48,7 +48,7 @@ class Tiles:
     def flag(self, spde: ti.template(), region: ti.template(), threshold: ti.f64, keep: ti.f64) -> ti.i32:
         """Flag each tile of each member: 1 where one of its cells is tagged after the buffer (a cell
         within Chebyshev distance ``buffer`` of it, across periodic sides, holds a content
-        ``q V_c`` below ``threshold``: the rule of :func:`regrid.tag`, negative cells included), or
+        ``q V_c`` below ``threshold``: the rule of :func:`clustering.tag`, negative cells included), or
         where the tile is covered now (one of its cells is, in ``region.covered``) and one of its cells
         is within ``buffer`` of a content below ``keep`` (``release · threshold`` at a scheduled
         regrid, hysteresis; infinite at an extension, which only adds tiles). Returns the cells

@@ -38,7 +38,7 @@ from matplotlib.figure import Figure
 
 from .files import frame_file
 from .volume import HULL_RGB, Volume
-from ..hybrid.regrid import mask as region_mask
+from ..hybrid.clustering import mask as region_mask
 
 DPI = 100  # figure pixels per inch: sizes below are in pixels
 LEFT, GAP, TOP, ROW_HEAD, BOTTOM, BAR = 56, 62, 34, 22, 42, 84  # layout [pixels]

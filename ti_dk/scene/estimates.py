@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from ..core.grid import Grid
-from ..hybrid import regrid
+from ..hybrid import clustering
 from ..pools import capacity
 from .schema import ConfigError, Scene
 
@@ -123,7 +123,7 @@ def work_estimate(scene: Scene) -> tuple[int, float]:
             per_step += scene.method.ensemble * _particles(scene) / PARTICLE_RATE
         if method == "hybrid":
             h = scene.hybrid
-            tagged = int(np.count_nonzero(regrid.tag(scene.initial_ppc, h.threshold))) if cells <= 10**7 else cells
+            tagged = int(np.count_nonzero(clustering.tag(scene.initial_ppc, h.threshold))) if cells <= 10**7 else cells
             held = h.threshold if h.regrid_interval else h.threshold / 2  # particles per tagged cell
             per_step += scene.method.ensemble * tagged * held / HYBRID_PARTICLE_RATE
             if h.regrid_interval:

@@ -34,7 +34,7 @@ from . import initial
 from ..core.expr import Potential
 from ..core.grid import Geometry
 from ..core.errors import ConfigError
-from ..hybrid.regrid import RegridParams
+from ..hybrid.clustering import RegridParams
 from ..pools import LAYOUTS as POOL_LAYOUTS
 
 
@@ -56,7 +56,7 @@ SCENE_DIR = scene_dir()
 METHODS = ("fv", "gaussian", "particle", "hybrid")
 SPDES = ("fv", "gaussian")  # the SPDE a hybrid run keeps on the whole grid
 GHOST_PROFILES = ("mean", "linear", "uniform")  # how sampled particles lie in their cell (see HybridSolver)
-REGIONS = ("tiles", "boxes")  # how the particle region covers the tagged cells (hybrid.tiles, hybrid.regrid)
+REGIONS = ("tiles", "boxes")  # how the particle region covers the tagged cells (hybrid.tiles, hybrid.clustering)
 BOUNDARY_KINDS = ("periodic", "neumann", "dirichlet")
 PRECISIONS = ("f32", "f64")
 PARTICLE_INITS = ("per_cell", "exact_uniform", "exact")
@@ -66,7 +66,7 @@ MAX_MEMBERS = 2**32  # so is the member index
 MAX_FIELD = 2**31 - 1  # Taichi indexes a field with 32-bit integers: members x cells must fit
 MAX_PPC = 1e15  # particles per cell: beyond, counts are not exact in f64 and fourth moments overflow
 NAME_RE = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,99}")  # a scene name is a plain file name
-_RG = RegridParams()  # the clustering defaults, written once in regrid.py
+_RG = RegridParams()  # the clustering defaults, written once in clustering.py
 SERIES_POINTS = 200  # a run's per-member series without observables: about this many records
 
 

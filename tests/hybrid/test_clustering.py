@@ -4,8 +4,8 @@ import math
 import numpy as np
 import pytest
 
-from ti_dk.hybrid import regrid
-from ti_dk.hybrid.regrid import RegridParams
+from ti_dk.hybrid import clustering
+from ti_dk.hybrid.clustering import RegridParams
 
 
 def _check_boxes(tags, boxes, p):
@@ -27,7 +27,7 @@ def _check_boxes(tags, boxes, p):
 def test_random_tags(shape, density):
     p = RegridParams(efficiency=0.7, min_box=2, max_box=16)
     tags = np.random.default_rng(math.prod(shape)).random(shape) < density
-    _check_boxes(tags, regrid.cluster(tags, p), p)
+    _check_boxes(tags, clustering.cluster(tags, p), p)
 
 
 def _ring(n=64):
@@ -45,7 +45,7 @@ def _blobs():
                          ids=["ellipse ring", "two blobs", "diagonal", "full"])
 def test_structured_tags(tags):
     p = RegridParams(efficiency=0.7, min_box=2, max_box=32)
-    boxes = regrid.cluster(tags, p)
+    boxes = clustering.cluster(tags, p)
     _check_boxes(tags, boxes, p)
     if tags.all():  # a full 20 x 30 block fits in one box of at most 32 cells a side
         assert len(boxes) == 1
@@ -53,9 +53,9 @@ def test_structured_tags(tags):
 
 def test_holes_split_disjoint_blobs_exactly():
     p = RegridParams(efficiency=0.9, min_box=2, max_box=64)
-    boxes = regrid.cluster(_blobs(), p)
+    boxes = clustering.cluster(_blobs(), p)
     assert sorted(boxes) == [((2, 3), (10, 20)), ((30, 30), (45, 40))]
-    assert regrid.efficiency(boxes, _blobs()) == 1.0
+    assert clustering.efficiency(boxes, _blobs()) == 1.0
 
 
 def _rows(*counts):
@@ -86,19 +86,19 @@ def _plus():
 def test_ties_go_to_the_first_axis_then_plane(tags, efficiency, boxes):
     """Among equal cut candidates the first axis, then the first plane, wins: the boxes and
     their order are pinned on symmetric sets where the other choice gives other boxes or order."""
-    assert regrid.cluster(tags, RegridParams(efficiency=efficiency, min_box=2, max_box=32)) == boxes
+    assert clustering.cluster(tags, RegridParams(efficiency=efficiency, min_box=2, max_box=32)) == boxes
 
 
 def test_tag_and_grow_respect_periodic_wrap():
     ppc = np.full(10, 20.0)
     ppc[0] = 3.0
     ppc[5] = -0.5  # negative cells are always tagged
-    t = regrid.tag(ppc, threshold=5.0)
+    t = clustering.tag(ppc, threshold=5.0)
     assert np.flatnonzero(t).tolist() == [0, 5]
-    assert np.flatnonzero(regrid.tag(ppc, threshold=0.0)).tolist() == [5]  # threshold 0: the negative only
-    assert np.flatnonzero(regrid.grow(t, 1, (True,))).tolist() == [0, 1, 4, 5, 6, 9]
-    assert np.flatnonzero(regrid.grow(t, 2, (False,))).tolist() == [0, 1, 2, 3, 4, 5, 6, 7]
+    assert np.flatnonzero(clustering.tag(ppc, threshold=0.0)).tolist() == [5]  # threshold 0: the negative only
+    assert np.flatnonzero(clustering.grow(t, 1, (True,))).tolist() == [0, 1, 4, 5, 6, 9]
+    assert np.flatnonzero(clustering.grow(t, 2, (False,))).tolist() == [0, 1, 2, 3, 4, 5, 6, 7]
     t2 = np.zeros((6, 6), dtype=bool)
     t2[0, 0] = True  # the corner's Chebyshev neighbours wrap on both axes
-    g = regrid.grow(t2, 1, (True, True))
+    g = clustering.grow(t2, 1, (True, True))
     assert g.sum() == 9 and g[5, 5] and g[1, 5]

@@ -30,7 +30,7 @@ class RegridParams:
     ``min_box`` / ``max_box``: box side limits in cells;
     ``regrid_floor``: between scheduled regrids, when an uncovered cell holds fewer than
     :attr:`trigger` particles, every uncovered cell below ``threshold`` is covered before the next
-    step (0: scheduled regrids only; see ``Regridding.extend``).
+    step (0: scheduled regrids only; see ``Regridder.extend``).
     The names are the scene keys' (``grid_efficiency`` is ``efficiency`` here); the schema
     (``scene.schema.HybridKeys``) checks their bounds, so nothing here checks them again.
     """

@@ -1,0 +1,210 @@
+"""The regrids of the AMAR hybrid (paper §3.2): :class:`Regridder`, the part of
+:class:`~.solver.HybridSolver` that keeps the schedule, makes each new region (tiles on the device,
+or tag, buffer and Berger–Rigoutsos on the host: :mod:`.clustering`), moves the particles to it,
+and logs every regrid."""
+
+import math
+
+import numpy as np
+
+from . import clustering
+
+# one record per regrid; on_demand: members regridded off schedule (0: a scheduled regrid of all)
+REGRID_LOG = ("step", "boxes", "covered_cells", "efficiency", "created", "removed", "on_demand")
+
+
+class Regridder:
+    """The regrids of ``solver`` (a :class:`~.solver.HybridSolver`: it reads the solver's SPDE, region,
+    sampler and coupling, and sets its ``pool`` and ``cur`` when the particles move).
+
+    The schedule (:meth:`when_due`): a regrid every ``interval`` steps (and at the start), and
+    between them, for a member that starts a step with an uncovered cell below
+    ``regrid_floor · threshold``, an extension (:meth:`extend`); ``interval = 0`` keeps the first
+    region. A regrid tags and buffers, then flags tiles on the device with hysteresis
+    (:mod:`.tiles`, the default) or runs Berger–Rigoutsos per member on the host
+    (``region = "boxes"``); particles in cells that stay covered are kept, cells that leave the
+    region keep their count as density, newly covered cells are sampled from the SPDE (the only
+    step that changes the total; logged in :attr:`log`). At the start the state is the
+    piecewise-constant initial condition, so those particles lie uniformly in their cells.
+
+    Parameters
+    ----------
+    solver : HybridSolver
+        The hybrid whose region this part moves.
+    params : RegridParams
+        The region's parameters (:class:`~.clustering.RegridParams`).
+    interval : int
+        Steps between scheduled regrids (0: the first region is kept, with no extension).
+    """
+
+    def __init__(self, solver, params: clustering.RegridParams, interval: int):
+        self.solver, self.params, self.interval = solver, params, interval
+        self.log: list[dict] = []  # one record of REGRID_LOG per regrid
+        self.change = 0.0  # created − removed at this step's regrid
+        self._removed = 0.0  # SPDE content Σ q V_c of the cells the last regrid covered anew
+        self._created = 0  # particles the last regrid sampled into them
+        self._low: int | None = None  # uncovered cells below params.trigger at the last count (None: not known)
+
+    # -- the schedule -----------------------------------------------------------------------
+    def when_due(self, n: int) -> None:
+        """The first stage of step ``n``: the scheduled regrid every ``interval`` steps, else the
+        extension where one is due (:meth:`count_low`); q changes after it, so the count is
+        forgotten."""
+        self.change = 0.0
+        if self.interval and n > 0:
+            if n % self.interval == 0:
+                self.regrid(n)
+            elif self.params.regrid_floor > 0 and self._extension_due():
+                self.extend(n)
+        self._low = None  # q changes from here
+
+    def count_low(self, diagnosing: bool = False) -> int:
+        """How many uncovered cells hold fewer than ``regrid_floor · threshold`` particles
+        (:meth:`Region.count_low`; with ``diagnosing`` the SPDE's diagnostics in the same pass),
+        kept for the next step's :meth:`when_due`."""
+        s = self.solver
+        self._low = s.regions.count_low(s.spde, self.params.trigger, diagnosing)
+        return self._low
+
+    def _extension_due(self) -> bool:
+        """Whether an uncovered cell holds fewer than ``regrid_floor · threshold`` particles (counted
+        at the end of the last step, or now where that step was a plain SPDE step or a state was loaded)."""
+        return (self.count_low() if self._low is None else self._low) > 0
+
+    # -- the new region ---------------------------------------------------------------------
+    def regrid(self, n: int) -> None:
+        """New region from the SPDE density at step ``n``: tiles flagged on the device, with
+        hysteresis (:meth:`_retile`), or tag, buffer, Berger–Rigoutsos on the host."""
+        s = self.solver
+        if s.regions.tiles is not None:
+            self._retile(n, self.params.release * self.params.threshold, False)
+            return
+        ppc = self._content()
+        masks, tagged = s.regions.plan(ppc)
+        self._move(masks, n, ppc, sort=True)
+        self._log(n, tagged, 0)
+
+    def extend(self, n: int) -> None:
+        """Cover, before step ``n``, the uncovered cells below ``threshold`` (grown by the buffer,
+        clustered by Berger–Rigoutsos; :meth:`Region.plan_extension`) and keep the rest of the
+        region: the on-demand regrid, due when :meth:`Region.count_low` finds a cell below
+        ``regrid_floor · threshold`` (:attr:`RegridParams.trigger`).
+
+        Tagging promises that no uncovered cell holds fewer than ``threshold`` particles; between
+        scheduled regrids that promise breaks, and FV then goes negative (one 2D step at C = 1/16
+        moves about √N/2 particles). An extension is due when an uncovered cell holds fewer than
+        ``regrid_floor · threshold``; it then covers every uncovered cell below ``threshold``, so
+        the next one waits until a cell falls from above ``threshold`` to below the floor
+        (hysteresis; with ``regrid_floor = 1`` the two sets are the same and an extension comes on
+        most steps of ellipse2d). Together with the ghost-entry cap of :meth:`Coupling._cap`
+        this cut the negative cell-steps of ellipse2d at threshold 5 from 47 to 1 (an FV step of
+        4.7 σ from 5.6 particles); the cap alone to 8.
+
+        With tiles, every tile that holds a cell below ``threshold`` after the buffer joins the
+        region (:meth:`_retile`).
+        """
+        s = self.solver
+        if s.regions.tiles is not None:
+            self._retile(n, math.inf, True)
+            return
+        ppc = self._content()
+        tags = clustering.tag(ppc, self.params.threshold)  # once: the extension and its log's count
+        masks, members = s.regions.plan_extension(tags)
+        self._move(masks, n, ppc)
+        self._log(n, int(tags.sum()), members)
+
+    def _retile(self, n: int, keep: float, extending: bool) -> None:
+        """A region of tiles flagged on the device (:meth:`Region.plan_tiles`; ``keep``: a covered
+        tile stays while a cell near it holds less). Members whose region is unchanged (with
+        hysteresis, most at most regrids) cost nothing more: where none changed, nothing
+        grid-sized is read or written, and no particle moves (the order of the particles in a pool
+        changes no result, so the scheduled regrid's sort is skipped too)."""
+        s = self.solver
+        masks, tagged = s.regions.plan_tiles(s.spde, keep)
+        changed = (masks != s.regions.mask()).reshape(s.ensemble, -1).any(axis=1)
+        if changed.any():
+            self._move(masks, n, self._content(), sort=not extending)
+        else:
+            self._removed, self._created = 0.0, 0
+        self._log(n, tagged, int(changed.sum()) if extending else 0)
+
+    def _content(self) -> np.ndarray:
+        """The SPDE content of every cell, ``q V_c`` (particles per cell, float64), scaled in place:
+        :meth:`SPDESolver.density` returns a fresh array, so a regrid makes one grid-sized array
+        here, not two."""
+        ppc = self.solver.spde.density()
+        ppc *= self.solver.grid.cell_volume
+        return ppc
+
+    def _log(self, n: int, tagged: int, on_demand: int) -> None:
+        """One record of :data:`REGRID_LOG`; ``efficiency`` is ``tagged`` over the covered cells, all
+        members: a scheduled regrid's tags after the buffer, an extension's cells below
+        ``threshold`` before it (kept so: the pinned run files hold both)."""
+        regions = self.solver.regions
+        covered = regions.n_cover
+        self.log.append({"step": n, "boxes": regions.box_count(), "covered_cells": covered,
+                         "efficiency": tagged / covered if covered else 1.0,
+                         "created": self._created, "removed": self._removed,
+                         "on_demand": on_demand})
+
+    # -- moving the particles ----------------------------------------------------------------
+    def set_region(self, masks: np.ndarray, n: int) -> None:
+        """Make ``masks`` (``(ensemble, *cells)`` booleans) the particle region at step ``n``, its
+        diagnostics up to date (a region set from outside, between steps)."""
+        self._move(masks, n, self._content())
+        self.solver.diagnose()
+
+    def _move(self, masks: np.ndarray, n: int, ppc: np.ndarray, sort: bool = False) -> None:
+        """:meth:`set_region` inside a step (regrid, extension), where the step's own
+        synchronisation brings the diagnostics up to date: no full-grid pass here. With ``sort``
+        (the scheduled regrids) the kept particles are put in cell order (:meth:`Coupling.sort`).
+        Between steps every particle lies in a covered cell, so a region that only grows keeps
+        them all where they are (:meth:`pools.ParticlePool.settle`; a compaction would copy every
+        particle at every extension)."""
+        s = self.solver
+        masks = np.broadcast_to(masks, (s.ensemble, *s.n))
+        old = s.regions.mask()
+        grown = s.regions.grown(masks)
+        near = grown | old  # where particles can be while the region moves: old, new, ring
+        s.pool = s.pool.fitted(self._estimate(masks, near, ppc), near)
+        sort = sort and not s.pool.cell_ordered
+        cells, n_new, n_gone = s.regions.stage(masks)
+        # the SPDE content the newly covered cells held, summed here: the same bits on any thread count
+        self._removed = float(ppc.reshape(-1)[cells[:n_new]].sum())
+        s.sampler.cover(s.pool, s.cur, n * s.substeps, s.tilt_on(n), s.coupling.count,
+                        cells, n_new, n_gone, int(sort or n_gone > 0))
+        self._created = int(s.sampler.created[None])
+        if sort:
+            s.coupling.sort(s.pool, s.cur)
+            s.cur = 1 - s.cur
+        elif n_gone:
+            s.compact()
+        else:  # the region only grew (every extension): no particle leaves, a compaction would copy them all
+            s.pool.settle(s.cur)
+        s.pool.retain(grown)  # the new region and its ring
+        s.regions.lists(grown)
+        if s.sampler.check_need() > s.pool.capacity:  # the estimate bounds it; kept as a guard
+            raise RuntimeError("particle pool estimate too small at a regrid")
+        self.change += self._created - self._removed
+
+    def _estimate(self, masks: np.ndarray, near: np.ndarray, ppc: np.ndarray) -> np.ndarray:
+        """Slots each cell can ask for around a regrid (``(ensemble, *cells)``; the pool adds the
+        headroom of :func:`pools.capacity`): the region and its ghost ring full, and a covered
+        cell's reservoir ghosts."""
+        grid = self.solver.grid
+        need = np.maximum(ppc, 0)  # in place from here: one grid-sized array per regrid, not three
+        need *= near
+        np.ceil(need, out=need)
+        if grid.has_dirichlet:
+            need += grid.reservoir_ppc_max * 3 ** (grid.dim - 1) * masks
+        return need
+
+    # -- checkpoints -------------------------------------------------------------------------
+    def state(self) -> dict[str, np.ndarray]:
+        """The log, one array per field of :data:`REGRID_LOG` (``regrid_<field>``)."""
+        return {f"regrid_{k}": np.array([r[k] for r in self.log]) for k in REGRID_LOG}
+
+    def load_state(self, st: dict[str, np.ndarray]) -> None:
+        """The log from :meth:`state`'s arrays; the low cells are counted again when next asked."""
+        self.log = [{k: st[f"regrid_{k}"][i].item() for k in REGRID_LOG} for i in range(len(st["regrid_step"]))]
+        self._low = None
