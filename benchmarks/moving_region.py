@@ -97,6 +97,16 @@ def scores(mean, var, members: int, exact) -> np.ndarray:
     return np.where(exact * members >= 1000, z, np.nan)
 
 
+def _value(text: str):
+    """A ``--set`` value: an int, a float, or the word itself."""
+    for kind in (int, float):
+        try:
+            return kind(text)
+        except ValueError:
+            pass
+    return text
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--members", type=int, default=100_000)
@@ -104,13 +114,16 @@ def main() -> None:
     ap.add_argument("--cases", nargs="+", default=list(CASES), choices=list(CASES))
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--save", help="an .npz file for the per-cell means and variances")
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                    help="change a key of every case (a number or a word), e.g. --set regrid_floor=0")
     args = ap.parse_args()
+    extra = {k: _value(v) for k, v in (a.split("=", 1) for a in args.set)}
     ti_dk.init("cpu", args.threads)
     M, out = args.members, {}
     for case in args.cases:
-        scene = trap_scene(case, M)
+        scene = trap_scene(case, M).replace(**extra)
         exact = exact_mean(case, scene)
-        print(f"{case}: {scene.n_steps} steps of {scene.dt:.3g}, {M} members in chunks of {args.chunk}", flush=True)
+        print(f"{case} {extra or ''}: {scene.n_steps} steps of {scene.dt:.3g}, {M} members in chunks of {args.chunk}", flush=True)
         mean, var, wall = moments(scene, M, args.chunk)
         out[case] = dict(mean=mean, var=var)
         z = scores(mean, var, M, exact)

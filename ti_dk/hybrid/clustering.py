@@ -205,17 +205,18 @@ def mask(boxes: list[Box], shape: tuple[int, ...]) -> np.ndarray:
 
 def region(ppc: np.ndarray, p: RegridParams, periodic: tuple[bool, ...],
            cache: dict | None = None) -> tuple[list[Box], np.ndarray, int]:
-    """Boxes, cell mask and number of tagged cells (after the buffer) of the particle region for
-    one member whose SPDE holds ``ppc``. ``cache`` (a dict kept across members) clusters each
-    tag pattern once: members with the same tags get the same boxes."""
-    tags = grow(tag(ppc, p.threshold), p.buffer, periodic)
+    """Boxes, cell mask and number of tagged cells (below ``threshold``, before the buffer) of the
+    particle region for one member whose SPDE holds ``ppc``. ``cache`` (a dict kept across members)
+    clusters each tag pattern once: members with the same tags get the same boxes."""
+    low = tag(ppc, p.threshold)
+    tags = grow(low, p.buffer, periodic)
     key = tags.tobytes()
     boxes = cache.get(key) if cache is not None else None
     if boxes is None:
         boxes = cluster(tags, p)
         if cache is not None:
             cache[key] = boxes
-    return boxes, mask(boxes, ppc.shape), int(tags.sum())
+    return boxes, mask(boxes, ppc.shape), int(low.sum())
 
 
 def efficiency(boxes: list[Box], tags: np.ndarray) -> float:

@@ -137,9 +137,9 @@ class Regridder:
         return ppc
 
     def _log(self, n: int, tagged: int, on_demand: int) -> None:
-        """One record of :data:`REGRID_LOG`; ``efficiency`` is ``tagged`` over the covered cells, all
-        members: a scheduled regrid's tags after the buffer, an extension's cells below
-        ``threshold`` before it (kept so: the pinned run files hold both)."""
+        """One record of :data:`REGRID_LOG`; ``efficiency`` is ``tagged`` (the cells below
+        ``threshold``, before the buffer) over the covered cells, all members: the share of the
+        region that needs its particles, at every regrid and extension alike."""
         regions = self.solver.regions
         covered = regions.n_cover
         self.log.append({"step": n, "boxes": regions.box_count(), "covered_cells": covered,

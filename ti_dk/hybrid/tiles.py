@@ -52,7 +52,8 @@ class Tiles:
         where the tile is covered now (one of its cells is, in ``region.covered``) and one of its cells
         is within ``buffer`` of a content below ``keep`` (``release · threshold`` at a scheduled
         regrid, hysteresis; infinite at an extension, which only adds tiles). Returns the cells
-        tagged after the buffer, all members (the regrid log's efficiency)."""
+        below ``threshold`` themselves (before the buffer), all members (the regrid log's
+        efficiency)."""
         side, b, vol = ti.static(self.side, self.buffer, self.grid.cell_volume)
         tagged = 0
         for K in ti.grouped(self.flags):
@@ -64,6 +65,8 @@ class Tiles:
                     inside = inside and C[a] < self.n[a]
                 if inside:
                     old = old or region.covered[region.member(K[0], C)] != 0
+                    if ti.cast(spde.q[region.member(K[0], C)], ti.f64) * vol < threshold:
+                        tagged += 1
                     least = ti.math.inf  # the least content within the buffer
                     for O in ti.grouped(ti.ndrange(*([2 * b + 1] * self.dim))):
                         D, ok = C + O - b, True
@@ -73,9 +76,7 @@ class Tiles:
                             ok = ok and 0 <= D[a] < self.n[a]
                         if ok:
                             least = ti.min(least, ti.cast(spde.q[region.member(K[0], D)], ti.f64) * vol)
-                    if least < threshold:
-                        low = True
-                        tagged += 1
+                    low = low or least < threshold
                     stay = stay or least < keep
             self.flags[K] = ti.u8(low or (old and stay))
         return tagged

@@ -30,8 +30,8 @@ UNITS = {
     "regrid/step": "the step after which the region was made",
     "regrid/boxes": "boxes" + SUM,
     "regrid/covered_cells": "cells" + SUM,
-    "regrid/efficiency": "tagged / covered cells, over all members (tagged: a scheduled regrid's tags after the "
-                         "buffer, an extension's cells below threshold before it)",
+    "regrid/efficiency": "tagged / covered cells, over all members (tagged: the cells below threshold, before "
+                         "the buffer)",
     "regrid/created": "particles sampled into newly covered cells" + SUM,
     "regrid/removed": "particles removed from cells no longer covered" + SUM,
     "regrid/on_demand": "members regridded off schedule (0: a scheduled regrid of all)",
