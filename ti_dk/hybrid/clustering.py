@@ -94,7 +94,7 @@ def cluster(tags: np.ndarray, p: RegridParams) -> list[Box]:
     signatures (tags per plane normal to each axis) as lists of ints. Most boxes are small, and
     NumPy's per-call overhead on them was most of the cost: the cuts now read the signatures in
     plain Python, and a cut costs one reduction, over one of its parts (:func:`_parts`), the
-    other's signatures being the parent's minus those (timings: ``benchmarks/RESULTS.md``).
+    other's signatures being the parent's minus those.
     """
     boxes: list[Box] = []
     d = tags.ndim

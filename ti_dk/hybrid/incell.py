@@ -1,4 +1,4 @@
-"""Where in its cell a particle the hybrid samples lies (paper §3; issue 28 with a potential): the
+"""Where in its cell a particle the hybrid samples lies (paper §3; with a potential, its Boltzmann profile in the cell): the
 slope of the profile density (``ghost_profile``) and the placement along it."""
 
 import numpy as np
@@ -51,7 +51,7 @@ class InCell:
         (the neighbours :func:`grid.across` each face: a Neumann side mirrors, a Dirichlet side
         sees its reservoir). Zero with ``ghost_profile = 'uniform'``.
 
-        Which ``p`` (``ghost_profile``), measured on the paper's void case (benchmarks/RESULTS.md):
+        Which ``p`` (``ghost_profile``), measured on the paper's void case:
 
         - ``uniform`` (paper §3): ``b = 0``. Near a density gradient the particles of a ghost cell do
           not lie uniformly; uniform placement puts too many next to the low side and biases the
@@ -72,7 +72,7 @@ class InCell:
         the current's slope. (An exponential profile with the centred slope of ``ln p`` alone
         ignores U's curvature within the cell: where U changes by more than ≈ 1 k_BT a cell it
         misjudges the density at the faces, by ≈ (ln p)''Δx²/12, and with it the ghosts' inflow;
-        benchmarks/RESULTS.md, the double well's crossing rate.)
+        as the double well's crossing rate showed.)
         """
         b = ti.Vector.zero(self.real, self.dim)
         if ti.static(self.profile != "uniform"):

@@ -119,7 +119,7 @@ class Region:
 
         The lists are made on the host (``np.flatnonzero``: ascending flat indices) and copied in
         by one kernel: making them on the device needs the ring as a grid-sized field written with
-        ``from_numpy``, and that write costs most of a regrid (``benchmarks/RESULTS.md``)."""
+        ``from_numpy``, and that write costs most of a regrid (measured)."""
         self.ring_mask = self._ring(self.grown(self._mask) if grown is None else grown)
         ring, cover = np.flatnonzero(self.ring_mask), np.flatnonzero(self._mask)
         self.n_ring, self.n_cover = ring.size, cover.size
@@ -133,7 +133,7 @@ class Region:
         Host NumPy: the region's dilation ``grown`` (:meth:`grown`) gives the cells inside the grid; a
         reservoir layer beyond a Dirichlet side is the boundary layer of covered cells dilated
         along the other axes. (A kernel over the padded grid that looks at each cell's
-        3^d neighbours is slower: ``benchmarks/RESULTS.md``.)"""
+        3^d neighbours is slower, as measured.)"""
         m, d = self._mask, self.dim
         out = np.zeros((self.ensemble, *self.padded), dtype=bool)
         inner = (slice(None),) + (slice(1, -1),) * d
@@ -149,11 +149,13 @@ class Region:
         return out
 
     def state(self) -> dict[str, np.ndarray]:
+        """The covered mask and every member's boxes (rows ``(member, *lo, *hi)``), for a checkpoint."""
         boxes = [(e, *lo, *hi) for e, bs in enumerate(self.boxes) for lo, hi in bs]
         return {"covered": self.covered.to_numpy(),
                 "boxes": np.array(boxes, dtype=np.int64).reshape(-1, 1 + 2 * self.dim)}
 
     def load_state(self, st: dict[str, np.ndarray]) -> None:
+        """The region of :meth:`state` back, its lists made again."""
         self.covered.from_numpy(st["covered"])
         self._mask = st["covered"].astype(bool)
         self.lists()
@@ -230,7 +232,7 @@ class Region:
         (``s = 1``): a walk step (at most one cell per axis) from ``C`` that ends covered crosses
         that face (:class:`~.crossings.Crossings`). −1 where no axis is such (a ring cell in a
         concave corner of the region). Kept per ring cell in :attr:`leads` while the region stands:
-        made at every fill, its 3^d − 1 lookups cost the 3D fill 40 % (``benchmarks/RESULTS.md``)."""
+        made at every fill, its 3^d − 1 lookups cost the 3D fill 40 %."""
         total = 0
         lo = ti.Vector.zero(ti.i32, self.dim)
         hi = ti.Vector.zero(ti.i32, self.dim)

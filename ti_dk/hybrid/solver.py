@@ -212,6 +212,7 @@ class HybridSolver(RegionSolver):
         return st | self.regridder.state()
 
     def load_state(self, st: dict[str, np.ndarray]) -> None:
+        """A state of :meth:`state` back (a restart continues bit for bit)."""
         self.spde.load_state({k[5:]: v for k, v in st.items() if k.startswith("spde_")})
         self.regions.load_state(st)
         self.pool = self.pool.restored(st["x"], st["pid"], st["n_real"], self.regions.grown(self.regions.mask()))
@@ -219,6 +220,8 @@ class HybridSolver(RegionSolver):
         self.regridder.load_state(st)
 
     def density(self) -> np.ndarray:
+        """The composite density ``(ensemble, *cells)`` [particles / volume]: the SPDE's, whose covered
+        cells hold their particle counts since the last synchronisation."""
         return self.spde.density()
 
     def region(self) -> np.ndarray:
@@ -226,6 +229,8 @@ class HybridSolver(RegionSolver):
         return self.regions.mask()
 
     def diagnostics(self) -> dict[str, float]:
+        """The SPDE's diagnostics of the last step, with the particles' inflow at walls and
+        reservoirs, clamped steps, the particle count and the last regrid's change of the total."""
         d = self.spde.diagnostics()
         c = self.coupling
         if self.n_cover:  # otherwise the last step was a plain SPDE step

@@ -58,7 +58,7 @@ class Coupling:
     def cross(self, pool: ti.template(), cur: ti.i32, step: ti.i32, first: ti.i32, last: ti.i32, n_ring: ti.i32,
               n_cover: ti.i32):
         """One particle sub-step but its compaction, in one launch and four parallel loops, run in
-        order (each starts Taichi's CPU thread pool: ≈ 80 µs on a 2-core VM, ``benchmarks/RESULTS.md``):
+        order (each starts Taichi's CPU thread pool: ≈ 80 µs on a 2-core VM):
         the walk (:meth:`_walk`), the entry cap (:meth:`_cap`, with S1 on the ``first`` sub-step) and
         the synchronisation (:meth:`_sync`, on the ``last``: it reads counts, not slots)."""
         if first:
@@ -138,7 +138,7 @@ class Coupling:
         scan over rows of cells, a scatter). A particle's random numbers are keyed on its identity,
         so the order changes no result; it keeps the walk's cell lookups and ``count`` updates
         local, where the order left by many steps of compaction and appended ghosts scatters them
-        over the grid (the walk's time with and without: ``benchmarks/RESULTS.md``).
+        over the grid (measured: the walk is faster with the sort).
         A pointer pool keeps its particles by block of cells and needs no sort."""
         E, L, rows = ti.static(self.spde.ensemble, self.n[-1], math.prod(self.n[:-1]))
         for u in range(pool.units(b)):
@@ -184,7 +184,7 @@ class Coupling:
         sub-step: the content the SPDE left in it (after S1) plus what the region gave it so far.
         Without this cap a ghost cell holding ``ℓ + α`` particles, ``ℓ + 1`` ghosts of which all
         walk in while its SPDE fluxes also carry content away, goes negative (it did in the
-        default ellipse2d run, in cells holding a few particles: ``benchmarks/RESULTS.md``). The ghosts
+        default ellipse2d run, in cells holding a few particles). The ghosts
         that enter are those of lowest index among the ones that walked in, so the result does
         not depend on thread order; cells with more than 64 ghosts are not capped (64 ghosts all
         walking in does not happen). Only the slots appended since the last compaction can hold

@@ -51,7 +51,7 @@ class Passes:
     def _group_fluxes(self, K, step):
         """:meth:`fluxes` through the lower faces of the ``L`` counter groups ``K`` (``K[last]``
         counts them along the last axis) and q̄'s right-hand side at their cells. A row is one
-        iteration of the parallel loop (one per group cost a quarter of the pass: RESULTS.md)."""
+        iteration of the parallel loop (one per group cost a quarter of the pass)."""
         fv = self.solver
         G, last, L, n = ti.static(fv.group, fv.dim, fv.lanes, fv.n[-1])
         words = ti.Matrix.zero(ti.u32, L, 4)  # L groups of G cells along the last axis, Philox calls first

@@ -76,6 +76,10 @@ def stability_limit(scene: Scene) -> float:
 
 
 def check_time_step(scene: Scene) -> None:
+    """Refuse a time step past the explicit stability limit (with the drift of a potential, the
+    Scharfetter–Gummel number), unless ``allow_unstable``, naming the limit and the C to use; refuse
+    a hybrid run past the particle births' 27-bit numbering; warn (``ClampWarning``) where a particle
+    step is clamped to ±Δx often."""
     number, clamp = (stability_number(scene.grid, scene.dt), scene.clamp_probability) if scene.potential is None \
         else _drift(scene)
     limit = scene.time.C / number

@@ -183,6 +183,7 @@ class InitKeys:
 
     @property
     def params(self) -> dict[str, Any]:
+        """The initial condition's own parameters by name."""
         return dict(self.items)
 
 
@@ -246,6 +247,7 @@ class HybridKeys:
 
     @property
     def regrid(self) -> RegridParams:
+        """The region's settings as the hybrid reads them (``grid_efficiency`` as ``efficiency``)."""
         return RegridParams(threshold=self.threshold, buffer=self.buffer, efficiency=self.grid_efficiency,
                             min_box=self.min_box, max_box=self.max_box, regrid_floor=self.regrid_floor,
                             region=self.region, tile=self.tile, release=self.release)
