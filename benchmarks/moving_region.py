@@ -12,9 +12,11 @@ C = 1/16, ``threshold`` 5, t_end = 0.005 (800 steps). The cases:
 - ``boxes``: the hybrid regridded every 10 steps with extensions on demand (the defaults) and the
   paper's Berger–Rigoutsos boxes (``region = "boxes"``);
 - ``tiles``: the same with the region of tiles (the default; in 1D tiles of one cell) and its
-  hysteresis (``release`` 1.5).
+  hysteresis (``release`` 1.5);
+- ``tiles_mean``: the same with ``region_from = "mean"``: the scheduled regrids tag the
+  deterministic q̄, one region for every member (extensions still follow each member).
 
-The void cases (``void_fixed``, ``void_tiles``, ``void_boxes``): the authors' void of the interface
+The void cases (``void_fixed``, ``void_tiles``, ``void_boxes``, ``void_mean``): the authors' void of the interface
 tests, the region fixed or regridded every 3 steps, against the clamped walk's own exact mean
 (:func:`ti_dk.core.theory.particle_counts_periodic`).
 
@@ -46,9 +48,11 @@ CASES = {
     "fixed": dict(method="hybrid", regrid_interval=0),
     "boxes": dict(method="hybrid", region="boxes"),
     "tiles": dict(method="hybrid", region="tiles"),
+    "tiles_mean": dict(method="hybrid", region="tiles", region_from="mean"),
     "void_fixed": dict(regrid_interval=0),
     "void_tiles": dict(regrid_interval=3, region="tiles"),
     "void_boxes": dict(regrid_interval=3, region="boxes"),
+    "void_mean": dict(regrid_interval=3, region="tiles", region_from="mean"),
 }
 
 

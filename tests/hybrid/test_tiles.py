@@ -23,12 +23,13 @@ def _tiles_any(cells, side):
 
 def _expected(content, old, threshold, keep, side, buffer, periodic):
     """The tile rule from its definition: a tile is flagged where a cell of it, grown by ``buffer``,
-    is below ``threshold``, or where it holds a covered cell (``old``) and one below ``keep``."""
+    is below ``threshold``, or where it holds a covered cell (``old``) and one below ``keep``; and the
+    cells below ``threshold`` themselves (the regrid log's count)."""
     ring = (None, *periodic)
     low = clustering.grow(content < threshold, buffer, ring)
     stay = clustering.grow(content < keep, buffer, ring)
     flags = _tiles_any(low, side) | (_tiles_any(old, side) & _tiles_any(stay, side))
-    return tiles.spread(flags, side, content.shape[1:]), int(low.sum())
+    return tiles.spread(flags, side, content.shape[1:]), int((content < threshold).sum())
 
 
 def _blob(cells, **kw):
@@ -72,13 +73,19 @@ def test_flags_follow_the_tag_rule_with_hysteresis(cells, boundary, side, buffer
     old = tiles.spread(rng.uniform(size=(3, *(-(-m // side) for m in cells))) < 0.5, side, cells)
     old[2, (0,) * len(cells)] = True  # a region not made of tiles (set from outside): its tile holds it
     s.spde.q.from_numpy(content / s.grid.cell_volume)
+    mean = rng.uniform(0, 12, size=(1, *cells))  # q̄ V_c, one for every member
+    s.spde.qbar.from_numpy(mean / s.grid.cell_volume)
     for keep in (7.5, 5.0, np.inf):
         s.regions.covered.from_numpy(old.astype(np.uint8))
-        masks, tagged = s.regions.plan_tiles(s.spde, keep)
+        masks, tagged = s.regions.plan_tiles(s.spde, keep, False)
         want, n_low = _expected(content, old, 5.0, keep, side, buffer, periodic)
         assert np.array_equal(masks, want) and tagged == n_low
         if keep == 5.0:  # member 1 holds no cell below 5: it keeps nothing
             assert not masks[1].any()
+        # region_from = "mean": every member's tags from q̄, whatever its own q (its own old region kept)
+        masks, tagged = s.regions.plan_tiles(s.spde, keep, True)
+        want, n_low = _expected(np.broadcast_to(mean, content.shape), old, 5.0, keep, side, buffer, periodic)
+        assert np.array_equal(masks, want) and tagged == n_low
 
 
 def test_hysteresis_keeps_the_region_from_flickering():

@@ -43,7 +43,7 @@ def _particle(scene: Scene, ppc: np.ndarray, common: dict) -> ParticleSolver:
 
 
 def _hybrid(scene: Scene, ppc: np.ndarray, common: dict) -> HybridSolver:
-    spde = _spde(ppc, common, gaussian=scene.hybrid.spde == "gaussian", track_mean=scene.hybrid.ghost_profile == "mean")
+    spde = _spde(ppc, common, gaussian=scene.hybrid.spde == "gaussian", track_mean=scene.hybrid.ghost_profile == "mean" or scene.hybrid.region_from == "mean")
     solver = HybridSolver(spde, scene.hybrid.regrid, scene.hybrid.regrid_interval, scene.hybrid.ghost_profile,
                           scene.hybrid.particle_substeps, scene.hybrid.pool_layout)
     solver.initialize()

@@ -24,6 +24,8 @@ class RegridParams:
     (Berger–Rigoutsos, :func:`cluster`, the paper's); ``tile``: the tiles' side in cells (0: 1 in
     1D, 4 in 2D and 3D); ``release``: a covered tile leaves the region only when all its cells,
     grown by the buffer, hold at least ``release · threshold`` particles (hysteresis);
+    ``region_from``: with tiles, whose density a scheduled regrid tags: ``member`` (each member's
+    own q) or ``mean`` (the deterministic q̄ of eq. 10, one region for every member);
     ``threshold``: tag cells holding fewer particles than this (and every negative cell);
     ``buffer``: grow the tags by this many cells (Chebyshev distance, across periodic sides);
     ``efficiency``: smallest accepted fraction of tagged cells in a box;
@@ -44,6 +46,7 @@ class RegridParams:
     region: str = "tiles"
     tile: int = 0
     release: float = 1.5
+    region_from: str = "member"
 
     @property
     def trigger(self) -> float:

@@ -120,7 +120,7 @@ class Regridder:
         grid-sized is read or written, and no particle moves (the order of the particles in a pool
         changes no result, so the scheduled regrid's sort is skipped too)."""
         s = self.solver
-        masks, tagged = s.regions.plan_tiles(s.spde, keep)
+        masks, tagged = s.regions.plan_tiles(s.spde, keep, self.params.region_from == "mean" and not extending)
         changed = (masks != s.regions.mask()).reshape(s.ensemble, -1).any(axis=1)
         if changed.any():
             self._move(masks, n, self._content(), sort=not extending)

@@ -44,17 +44,31 @@ class Tiles:
         """The region the flags give, ``(ensemble, *cells)`` booleans (one small read: the flags)."""
         return spread(self.flags.to_numpy().astype(bool), self.side, self.n)
 
+    @ti.func
+    def _content(self, spde: ti.template(), region: ti.template(), e, C, mean: ti.template()) -> ti.f64:
+        """Cell ``C``'s content ``q V_c`` [particles] in member ``e``, or of q̄ with ``mean``."""
+        v = ti.f64(0.0)
+        if ti.static(mean):
+            v = ti.cast(spde.qbar[region.member(0, C)], ti.f64)
+        else:
+            v = ti.cast(spde.q[region.member(e, C)], ti.f64)
+        return v * self.grid.cell_volume
+
     @ti.kernel
-    def flag(self, spde: ti.template(), region: ti.template(), threshold: ti.f64, keep: ti.f64) -> ti.i32:
+    def flag(self, spde: ti.template(), region: ti.template(), threshold: ti.f64, keep: ti.f64,
+             mean: ti.template()) -> ti.i32:
         """Flag each tile of each member: 1 where one of its cells is tagged after the buffer (a cell
         within Chebyshev distance ``buffer`` of it, across periodic sides, holds a content
         ``q V_c`` below ``threshold``: the rule of :func:`clustering.tag`, negative cells included), or
         where the tile is covered now (one of its cells is, in ``region.covered``) and one of its cells
         is within ``buffer`` of a content below ``keep`` (``release · threshold`` at a scheduled
-        regrid, hysteresis; infinite at an extension, which only adds tiles). Returns the cells
-        below ``threshold`` themselves (before the buffer), all members (the regrid log's
-        efficiency)."""
-        side, b, vol = ti.static(self.side, self.buffer, self.grid.cell_volume)
+        regrid, hysteresis; infinite at an extension, which only adds tiles). With ``mean`` the
+        contents are those of the deterministic q̄ (eq. 10), the same for every member: the region
+        then moves as a function of time alone, never of a member's own noise, and the hybrid stays
+        exact while it moves (choosing cells by each member's noisy density moves mass across the
+        interface: ``benchmarks/moving_region.py``). Returns the cells below ``threshold``
+        themselves (before the buffer), all members (the regrid log's efficiency)."""
+        side, b = ti.static(self.side, self.buffer)
         tagged = 0
         for K in ti.grouped(self.flags):
             old, low, stay = False, False, False
@@ -65,7 +79,7 @@ class Tiles:
                     inside = inside and C[a] < self.n[a]
                 if inside:
                     old = old or region.covered[region.member(K[0], C)] != 0
-                    if ti.cast(spde.q[region.member(K[0], C)], ti.f64) * vol < threshold:
+                    if self._content(spde, region, K[0], C, mean) < threshold:
                         tagged += 1
                     least = ti.math.inf  # the least content within the buffer
                     for O in ti.grouped(ti.ndrange(*([2 * b + 1] * self.dim))):
@@ -75,7 +89,7 @@ class Tiles:
                                 D[a] = (D[a] + self.n[a]) % self.n[a]
                             ok = ok and 0 <= D[a] < self.n[a]
                         if ok:
-                            least = ti.min(least, ti.cast(spde.q[region.member(K[0], D)], ti.f64) * vol)
+                            least = ti.min(least, self._content(spde, region, K[0], D, mean))
                     low = low or least < threshold
                     stay = stay or least < keep
             self.flags[K] = ti.u8(low or (old and stay))

@@ -57,6 +57,7 @@ METHODS = ("fv", "gaussian", "particle", "hybrid")
 SPDES = ("fv", "gaussian")  # the SPDE a hybrid run keeps on the whole grid
 GHOST_PROFILES = ("mean", "linear", "uniform")  # how sampled particles lie in their cell (see HybridSolver)
 REGIONS = ("tiles", "boxes")  # how the particle region covers the tagged cells (hybrid.tiles, hybrid.clustering)
+REGION_SOURCES = ("member", "mean")  # whose density a scheduled regrid of tiles tags (hybrid.tiles.Tiles.flag)
 BOUNDARY_KINDS = ("periodic", "neumann", "dirichlet")
 PRECISIONS = ("f32", "f64")
 PARTICLE_INITS = ("per_cell", "exact_uniform", "exact")
@@ -235,6 +236,9 @@ class HybridKeys:
                     _RG.tile, lo=0)
     release: float = key("real", "tiles: a covered tile leaves only when all its cells (with the buffer) hold at "
                          "least this times threshold (hysteresis)", _RG.release, lo=1.0)
+    region_from: str = key("choice", "tiles: whose density a scheduled regrid tags: each member's own (member) or "
+                           "the deterministic mean q-bar, one region for every member (mean: exact while the region "
+                           "moves; extensions still follow each member)", _RG.region_from, choices=REGION_SOURCES)
     grid_efficiency: float = key("real", "boxes: smallest tagged fraction of a box", _RG.efficiency,
                                  lo=0.0, hi=1.0, above=True)
     min_box: int = key("int", "boxes: smallest box side in cells (at most the most cells along an axis)", _RG.min_box,
@@ -250,6 +254,7 @@ class HybridKeys:
         """The region's settings as the hybrid reads them (``grid_efficiency`` as ``efficiency``)."""
         return RegridParams(threshold=self.threshold, buffer=self.buffer, efficiency=self.grid_efficiency,
                             min_box=self.min_box, max_box=self.max_box, regrid_floor=self.regrid_floor,
+                            region_from=self.region_from,
                             region=self.region, tile=self.tile, release=self.release)
 
 
