@@ -40,6 +40,8 @@ class SPDESolver(Solver):
     cell-averaged Boltzmann profile e^{−Ū} stationary to round-off; the noise is unchanged. A
     reservoir cell beyond a Dirichlet side holds ``reservoir_ppc`` particles at its own Ū.
 
+    Build it with :func:`ti_dk.make_solver`, which also initialises it.
+
     Parameters
     ----------
     grid : Grid
@@ -61,8 +63,6 @@ class SPDESolver(Solver):
     track_mean : bool
         Advance q̄ (eq. 10) beside q for another reader (the hybrid's ghosts); the Gaussian scheme
         always does.
-
-    Build it with :func:`ti_dk.make_solver`, which also initialises it.
     """
 
     def __init__(self, grid: Grid, dt: float, ensemble: int, key: tuple[int, int], real=ti.f64, gaussian: bool = False,

@@ -292,6 +292,8 @@ class ParticleSolver(Placement, Solver):
     compacts the slots (:meth:`pools.ParticlePool.compact`, into the pool's other buffer);
     otherwise the slot is the id and one buffer suffices.
 
+    Build it with :func:`ti_dk.make_solver`, which also initialises it.
+
     Parameters
     ----------
     grid, dt, ensemble, key, real, member0
@@ -299,8 +301,6 @@ class ParticleSolver(Placement, Solver):
     capacity : int
         Particle slots per member (:meth:`capacity_for`); a step that needs more raises
         ``OverflowError``.
-
-    Build it with :func:`ti_dk.make_solver`, which also initialises it.
     """
 
     def __init__(self, grid: Grid, dt: float, ensemble: int, key: tuple[int, int], real, capacity: int,
