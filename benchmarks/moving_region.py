@@ -31,16 +31,16 @@ the particle method, gives z ~ N(0, 1): rms z near 1 and no pattern across the r
 """
 import argparse
 import math
-import time
 import warnings
 
 import numpy as np
 
 import ti_dk
 from ti_dk.core import theory
-from ti_dk.core.stats import CellStats
 from ti_dk.core.theory import trap_walk_shares
+from ti_dk.scene.load import command_overrides
 from ti_dk.scene.schema import ClampWarning
+from trap_tails import chunked_moments  # a sibling script: each chunk a run with member0
 
 SIGMA, CELLS, N = 0.08, 100, 300
 CASES = {
@@ -79,36 +79,11 @@ def exact_mean(case: str, scene) -> np.ndarray:
     return N * trap_walk_shares(CELLS, 1.0, scene.dt, 1.0 / SIGMA**2, 0.5)
 
 
-def moments(scene, members: int, chunk: int):
-    """Per-cell mean and variance of the count at t_end (one sample per member) over ``members`` members, ``chunk`` at a time
-    (``member0``: the same streams as one ensemble), and the wall seconds."""
-    merged, wall = CellStats(scene.grid.cells, scene.grid.cell_volume), 0.0
-    for start in range(0, members, chunk):
-        size = min(chunk, members - start)
-        t0 = time.perf_counter()
-        res = ti_dk.run(scene.replace(ensemble=size), progress=False, member0=start)
-        wall += time.perf_counter() - t0
-        merged.merge_row(res.rows[-1])
-        print(f"  members {start}..{start + size - 1}: {time.perf_counter() - t0:.1f} s", flush=True)
-    row, vol = merged.row(), scene.grid.cell_volume
-    return row["mean"] * vol, row["variance"] * vol**2, wall
-
-
 def scores(mean, var, members: int, exact) -> np.ndarray:
     """z of each cell's mean against ``exact`` (NaN where the expected count over all members is
     below 1,000)."""
     z = (mean - exact) / np.sqrt(np.maximum(var, 1e-300) / members)
     return np.where(exact * members >= 1000, z, np.nan)
-
-
-def _value(text: str):
-    """A ``--set`` value: an int, a float, or the word itself."""
-    for kind in (int, float):
-        try:
-            return kind(text)
-        except ValueError:
-            pass
-    return text
 
 
 def main() -> None:
@@ -121,14 +96,14 @@ def main() -> None:
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="change a key of every case (a number or a word), e.g. --set regrid_floor=0")
     args = ap.parse_args()
-    extra = {k: _value(v) for k, v in (a.split("=", 1) for a in args.set)}
+    extra = command_overrides(args.set, {})
     ti_dk.init("cpu", args.threads)
     M, out = args.members, {}
     for case in args.cases:
         scene = trap_scene(case, M).replace(**extra)
         exact = exact_mean(case, scene)
         print(f"{case} {extra or ''}: {scene.n_steps} steps of {scene.dt:.3g}, {M} members in chunks of {args.chunk}", flush=True)
-        mean, var, wall = moments(scene, M, args.chunk)
+        mean, var, wall = chunked_moments(scene, M, args.chunk)
         out[case] = dict(mean=mean, var=var)
         z = scores(mean, var, M, exact)
         worst = int(np.nanargmax(np.abs(z)))
