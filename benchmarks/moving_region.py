@@ -1,7 +1,7 @@
 """The hybrid with its region moving, against the exact answer at >= 10⁵ members (issue 40's trap).
 
     PYTHONPATH=. python benchmarks/moving_region.py [--members 100000] [--chunk 25000]
-        [--cases particle fixed boxes tiles] [--threads 2]
+        [--cases particle fixed tiles tiles_member ...] [--threads 2]
 
 A harmonic trap, U = ½((x − ½)/σ)², σ = 0.08, on 100 Neumann cells of [0, 1], N = 300 particles
 (3 per cell on average), started at the cell-averaged Boltzmann profile (``init = "boltzmann"``),
@@ -9,14 +9,17 @@ C = 1/16, ``threshold`` 5, t_end = 0.005 (800 steps). The cases:
 
 - ``particle``: the particle method (``particle_init = "exact"``: exactly 300 particles);
 - ``fixed``: the hybrid with its first region kept (``regrid_interval = 0``);
-- ``boxes``: the hybrid regridded every 10 steps with extensions on demand (the defaults) and the
-  paper's Berger–Rigoutsos boxes (``region = "boxes"``);
-- ``tiles``: the same with the region of tiles (the default; in 1D tiles of one cell) and its
-  hysteresis (``release`` 1.5);
-- ``tiles_mean``: the same with ``region_from = "mean"``: the scheduled regrids tag the
-  deterministic q̄, one region for every member (extensions still follow each member).
+- ``tiles``: the hybrid regridded every 10 steps with the defaults: tiles (in 1D tiles of one
+  cell) with hysteresis (``release`` 1.5), tagged from the deterministic q̄ (``region_from =
+  "mean"``, one region for every member), no extensions (``regrid_floor = 0``);
+- ``tiles_guard``: the same with extensions on demand (``regrid_floor = 0.6``: a member's
+  cell below 3 particles is covered before the next step, chosen by the member's own density);
+- ``tiles_member``: tiles tagged from each member's own density with extensions
+  (``region_from = "member"``, ``regrid_floor = 1``: the defaults before this benchmark);
+- ``boxes``: Berger–Rigoutsos boxes (``region = "boxes"``) from q̄; ``boxes_member``: the paper's,
+  from each member's own density with extensions.
 
-The void cases (``void_fixed``, ``void_tiles``, ``void_boxes``, ``void_mean``): the authors' void of the interface
+The void cases (``void_fixed``, ``void_tiles``, ``void_member``, ``void_boxes``): the authors' void of the interface
 tests, the region fixed or regridded every 3 steps, against the clamped walk's own exact mean
 (:func:`ti_dk.core.theory.particle_counts_periodic`).
 
@@ -43,16 +46,19 @@ from ti_dk.scene.schema import ClampWarning
 from trap_tails import chunked_moments  # a sibling script: each chunk a run with member0
 
 SIGMA, CELLS, N = 0.08, 100, 300
+MEMBER = dict(region_from="member", regrid_floor=1.0)  # the region from each member's own density
 CASES = {
     "particle": dict(method="particle", particle_init="exact"),
     "fixed": dict(method="hybrid", regrid_interval=0),
+    "tiles": dict(method="hybrid"),
+    "tiles_guard": dict(method="hybrid", regrid_floor=0.6),
+    "tiles_member": dict(method="hybrid", **MEMBER),
     "boxes": dict(method="hybrid", region="boxes"),
-    "tiles": dict(method="hybrid", region="tiles"),
-    "tiles_mean": dict(method="hybrid", region="tiles", region_from="mean"),
+    "boxes_member": dict(method="hybrid", region="boxes", **MEMBER),
     "void_fixed": dict(regrid_interval=0),
-    "void_tiles": dict(regrid_interval=3, region="tiles"),
+    "void_tiles": dict(regrid_interval=3),
+    "void_member": dict(regrid_interval=3, **MEMBER),
     "void_boxes": dict(regrid_interval=3, region="boxes"),
-    "void_mean": dict(regrid_interval=3, region="tiles", region_from="mean"),
 }
 
 

@@ -55,7 +55,7 @@ def ellipse_settings() -> list[Setting]:
     s = [Setting("fv", {"method": "fv"}), Setting("gaussian", {"method": "gaussian"}),
          Setting("particle", {"method": "particle"})]
     s += [Setting(f"hybrid threshold {t:g}", {"method": "hybrid", "threshold": t}) for t in (1, 2, 5, 10, 20)]
-    return s + [Setting("hybrid regrid_floor 0", {"method": "hybrid", "regrid_floor": 0.0})]
+    return s + [Setting("hybrid region_from member", {"method": "hybrid", "region_from": "member"})]
 
 
 def sweep(scene_name: str, settings: list[Setting], base: dict, members: int, planned: int, out: Path,

@@ -93,6 +93,8 @@ def test_default_candidates_span_the_settings():
     labels = [c.label for c in tr.candidates(ti_dk.load_scene("ellipse2d"))]
     assert labels[:2] == ["fv", "gaussian"] and "hybrid threshold 6" in labels and "hybrid threshold 12" in labels
     assert any("substeps" in x for x in labels) and any("f32" in x for x in labels) and "fv C=0.125" in labels
+    assert "hybrid region_from mean" in labels  # ellipse2d regrids, each member's own region
+    assert not any("region_from" in c.label for c in tr.candidates(ti_dk.load_scene("void1d")))  # a fixed region
 
 
 def test_run_keeps_the_samples_behind_each_row():

@@ -6,6 +6,7 @@ import pytest
 
 from ti_dk import load_scene
 from ti_dk.control.registry import make_solver
+from ti_dk.hybrid import clustering
 
 from ..helpers import covered_nonnegative, run_steps
 
@@ -36,6 +37,31 @@ def test_scheduled_regrid_sorts_the_particles_by_cell(cells):
         counts = np.bincount(flat, minlength=np.prod(cells)).reshape(cells)
         assert np.all(region[e][counts > 0])
         assert np.array_equal(counts[region[e]], np.round(q[e][region[e]]).astype(int))
+
+
+@pytest.mark.parametrize("kind", ["tiles", "boxes"])
+def test_a_region_from_the_mean_is_every_members_and_q_bars(kind):
+    # region_from = "mean" (the default): the members' densities differ after a few steps, their regions
+    # do not; the region is q̄'s tags, grown by the buffer, covered by tiles or clustered once as boxes
+    # (the tag, grow and cluster functions run on q̄'s content); each member's own would differ
+    scene = load_scene("ellipse2d", method="hybrid", cells=[32, 24], regrid_interval=4, ensemble=3, ppc_outer=8,
+                       ppc_inner=4, threshold=5.0, seed=2, region=kind, region_from="mean", regrid_floor=0)
+    assert (clustering.RegridParams().region_from, clustering.RegridParams().regrid_floor) == ("mean", 0)
+    s = _solver(scene)
+    for n in range(7):
+        s.step(n)
+    s.regrid(7)
+    region, vol = s.region(), s.grid.cell_volume
+    assert all(np.array_equal(region[0], region[e]) for e in (1, 2)) and 0 < region[0].mean() < 1
+    mean = s.spde.qbar.to_numpy()[0].astype(float) * vol
+    tags = clustering.grow(clustering.tag(mean, 5.0)[None], 1, (None, True, True))[0]
+    assert np.all(region[0][tags])  # every grown tag covered: by whole tiles, or by boxes
+    if kind == "boxes":
+        want, _ = clustering.region(mean, scene.hybrid.regrid, (True, True), {})[1:]
+        assert np.array_equal(region[0], want)
+    own = [np.array_equal(clustering.region(q, scene.hybrid.regrid, (True, True), {})[1], region[0])
+           for q in s.density() * vol]
+    assert not all(own)
 
 
 def test_regrid_ledger_and_region_follows_density():
@@ -81,7 +107,7 @@ def test_regrid_on_demand():
     # a region kept for 1000 steps cannot follow an emptying ellipse: the cells that fall below
     # the threshold are covered on demand, before the step, and the rest of the region is kept
     scene = load_scene("ellipse2d", method="hybrid", cells=[40, 40], regrid_interval=1000, ppc_outer=12,
-                       ppc_inner=6, threshold=4.0, t_end=0.01, seed=5)
+                       ppc_inner=6, threshold=4.0, t_end=0.01, seed=5, region_from="member", regrid_floor=0.6)
     s = _solver(scene)
     start = s.region()
     vol = s.grid.cell_volume
@@ -109,3 +135,13 @@ def test_regrid_on_demand():
         half.extend(60)
     q = half.density() * vol
     assert q[~half.region()].min() >= 2.0
+    # from q̄, an extension covers only the cells below the trigger (their tiles): fewer cells
+    least = _solver(scene.replace(regrid_floor=0.5, region_from="mean"))
+    for n in range(60):
+        least.step(n)
+    assert sum(r["on_demand"] > 0 for r in least.regrids) > 0
+    if least.regions.count_low(least.spde, 2.0, False):
+        least.extend(60)
+    q = least.density() * vol
+    assert q[~least.region()].min() >= 2.0 and q[~least.region()].min() < 4.0
+    assert least.region().sum() < half.region().sum()

@@ -77,26 +77,31 @@ def test_flags_follow_the_tag_rule_with_hysteresis(cells, boundary, side, buffer
     s.spde.qbar.from_numpy(mean / s.grid.cell_volume)
     for keep in (7.5, 5.0, np.inf):
         s.regions.covered.from_numpy(old.astype(np.uint8))
-        masks, tagged = s.regions.plan_tiles(s.spde, keep, False)
+        masks, tagged = s.regions.plan_tiles(s.spde, 5.0, keep, False)
         want, n_low = _expected(content, old, 5.0, keep, side, buffer, periodic)
         assert np.array_equal(masks, want) and tagged == n_low
         if keep == 5.0:  # member 1 holds no cell below 5: it keeps nothing
             assert not masks[1].any()
         # region_from = "mean": every member's tags from q̄, whatever its own q (its own old region kept)
-        masks, tagged = s.regions.plan_tiles(s.spde, keep, True)
+        masks, tagged = s.regions.plan_tiles(s.spde, 5.0, keep, True)
         want, n_low = _expected(np.broadcast_to(mean, content.shape), old, 5.0, keep, side, buffer, periodic)
         assert np.array_equal(masks, want) and tagged == n_low
+        # with the positivity guard: also each member's tiles near its own cells below 2 (member 1: none)
+        masks, tagged = s.regions.plan_tiles(s.spde, 5.0, keep, True, 2.0)
+        own, _ = _expected(content, np.zeros_like(old), 2.0, keep, side, buffer, periodic)
+        assert np.array_equal(masks, want | own) and tagged == n_low and own.any() and not own[1].any()
 
 
 def test_hysteresis_keeps_the_region_from_flickering():
     # 9 per cell everywhere, threshold 5, a regrid every step: about one cell in 18 is tagged, and
-    # a tile of 4 × 4 (6 × 6 with the buffer) is free of tags with probability ≈ 0.1 each time.
+    # a tile of 4 × 4 (6 × 6 with the buffer) is free of tags with probability ≈ 0.1 each time
+    # (tags from each member's own density: q̄ = 9 tags nothing).
     # Without hysteresis (release 1) tiles come and go at every regrid; with release 1.5 a tile
     # leaves only when all 36 cells hold 8 or more (≈ 1e-6): none does.
     left = {}
     for release in (1.0, 1.5):
         scene = load_scene("equilibrium1d", method="hybrid", cells=[32, 32], ppc=9, threshold=5, regrid_interval=1,
-                           regrid_floor=0, release=release, t_equil=None, histogram=None, seed=3, ensemble=1)
+                           region_from="member", release=release, t_equil=None, histogram=None, seed=3, ensemble=1)
         s = make_solver(scene, scene.initial_ppc)
         left[release] = 0
         for n in range(30):

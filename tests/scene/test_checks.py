@@ -49,9 +49,6 @@ def test_the_hybrids_sizes_are_bounded_by_the_grid(key):
     assert load_scene("void1d", cells=[16], method="hybrid", **{key: 16}, max_box=32).hybrid.buffer >= 0
 
 
-def test_a_region_from_the_mean_is_for_tiles():
-    _refused('region_from = "mean" is for region = "tiles"', method="hybrid", region="boxes", region_from="mean")
-    assert load_scene("void1d", method="hybrid", region_from="mean").hybrid.regrid.region_from == "mean"
 
 
 @pytest.mark.parametrize("density", ["1e300+0*x", "1e200", "1e16", "1e16*step(x-0.9)"])

@@ -55,7 +55,8 @@ class Candidate:
 
 def candidates(scene: Scene) -> list[Candidate]:
     """The default set for ``scene``: fv and gaussian; the hybrid at the scene's threshold, half
-    and twice it, a wider buffer, twice C with two particle sub-steps; C halved and doubled; f32."""
+    and twice it, a wider buffer, twice C with two particle sub-steps, f32, and where the region
+    moves, tagged from each member's own density; fv at C halved and doubled, and f32."""
     h, C = scene.hybrid, scene.time.C
     hyb = {"method": "hybrid"}
     s = [Candidate("fv", {"method": "fv"}), Candidate("gaussian", {"method": "gaussian"}),
@@ -67,6 +68,9 @@ def candidates(scene: Scene) -> list[Candidate]:
     s += [Candidate(f"hybrid buffer {h.buffer + 2}", hyb | {"buffer": h.buffer + 2}),
           Candidate(f"hybrid C={2 * C:g} substeps 2", hyb | {"C": 2 * C, "particle_substeps": 2}),
           Candidate("hybrid f32", hyb | {"precision": "f32"})]
+    if h.regrid_interval:  # a region that moves: from the other source
+        other = "member" if h.region_from == "mean" else "mean"
+        s.append(Candidate(f"hybrid region_from {other}", hyb | {"region_from": other}))
     return s
 
 

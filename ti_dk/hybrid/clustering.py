@@ -24,15 +24,17 @@ class RegridParams:
     (Berger–Rigoutsos, :func:`cluster`, the paper's); ``tile``: the tiles' side in cells (0: 1 in
     1D, 4 in 2D and 3D); ``release``: a covered tile leaves the region only when all its cells,
     grown by the buffer, hold at least ``release · threshold`` particles (hysteresis);
-    ``region_from``: with tiles, whose density a scheduled regrid tags: ``member`` (each member's
-    own q) or ``mean`` (the deterministic q̄ of eq. 10, one region for every member);
+    ``region_from``: whose density a scheduled regrid tags: ``mean`` (the deterministic q̄ of
+    eq. 10, one region for every member, a function of time alone: the hybrid stays exact while
+    it moves) or ``member`` (each member's own q: biased while it moves, ``docs/hybrid.md``);
     ``threshold``: tag cells holding fewer particles than this (and every negative cell);
     ``buffer``: grow the tags by this many cells (Chebyshev distance, across periodic sides);
     ``efficiency``: smallest accepted fraction of tagged cells in a box;
     ``min_box`` / ``max_box``: box side limits in cells;
     ``regrid_floor``: between scheduled regrids, when an uncovered cell holds fewer than
     :attr:`trigger` particles, every uncovered cell below ``threshold`` is covered before the next
-    step (0: scheduled regrids only; see ``Regridder.extend``).
+    step (0, the default: scheduled regrids only; an extension follows the member's own density,
+    see ``Regridder.extend``).
     The names are the scene keys' (``grid_efficiency`` is ``efficiency`` here); the schema
     (``scene.schema.HybridKeys``) checks their bounds, so nothing here checks them again.
     """
@@ -42,11 +44,11 @@ class RegridParams:
     efficiency: float = 0.7
     min_box: int = 2
     max_box: int = 32
-    regrid_floor: float = 1.0
+    regrid_floor: float = 0.0
     region: str = "tiles"
     tile: int = 0
     release: float = 1.5
-    region_from: str = "member"
+    region_from: str = "mean"
 
     @property
     def trigger(self) -> float:

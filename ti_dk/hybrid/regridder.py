@@ -73,14 +73,16 @@ class Regridder:
 
     # -- the new region ---------------------------------------------------------------------
     def regrid(self, n: int) -> None:
-        """New region from the SPDE density at step ``n``: tiles flagged on the device, with
-        hysteresis (:meth:`_retile`), or tag, buffer, Berger–Rigoutsos on the host."""
+        """New region from the SPDE density at step ``n`` (each member's own, or with ``region_from =
+        "mean"`` the deterministic q̄'s, one region for every member): tiles flagged on the device,
+        with hysteresis (:meth:`_retile`), or tag, buffer, Berger–Rigoutsos on the host."""
         s = self.solver
+        p = self.params
         if s.regions.tiles is not None:
-            self._retile(n, self.params.release * self.params.threshold, False)
+            self._retile(n, p.threshold, p.release * p.threshold, False)
             return
         ppc = self._content()
-        masks, tagged = s.regions.plan(ppc)
+        masks, tagged = s.regions.plan(self._mean_content(ppc) if p.region_from == "mean" else ppc)
         self._move(masks, n, ppc, sort=True)
         self._log(n, tagged, 0)
 
@@ -102,25 +104,35 @@ class Regridder:
 
         With tiles, every tile that holds a cell below ``threshold`` after the buffer joins the
         region (:meth:`_retile`).
+
+        With ``region_from = "mean"`` an extension covers only the member's cells below the trigger
+        (grown by the buffer; with tiles, their tiles): the region the scheduled regrids take from
+        q̄ is exact while it moves, and every cell an extension covers is chosen by the member's
+        own noise, which biases the ensemble's means (``docs/hybrid.md``); covering the fewest keeps
+        that bias as small as the protection allows.
         """
         s = self.solver
+        p = self.params
+        level = p.trigger if p.region_from == "mean" else p.threshold  # the cells an extension covers
         if s.regions.tiles is not None:
-            self._retile(n, math.inf, True)
+            self._retile(n, level, math.inf, True)
             return
         ppc = self._content()
-        tags = clustering.tag(ppc, self.params.threshold)  # once: the extension and its log's count
+        tags = clustering.tag(ppc, level)  # once: the extension and its log's count
         masks, members = s.regions.plan_extension(tags)
         self._move(masks, n, ppc)
         self._log(n, int(tags.sum()), members)
 
-    def _retile(self, n: int, keep: float, extending: bool) -> None:
-        """A region of tiles flagged on the device (:meth:`Region.plan_tiles`; ``keep``: a covered
-        tile stays while a cell near it holds less). Members whose region is unchanged (with
+    def _retile(self, n: int, level: float, keep: float, extending: bool) -> None:
+        """A region of tiles flagged on the device (:meth:`Region.plan_tiles`; ``level``: a tile holding a
+        cell below it, grown by the buffer, is covered; ``keep``: a covered tile stays while a cell
+        near it holds less). Members whose region is unchanged (with
         hysteresis, most at most regrids) cost nothing more: where none changed, nothing
         grid-sized is read or written, and no particle moves (the order of the particles in a pool
         changes no result, so the scheduled regrid's sort is skipped too)."""
         s = self.solver
-        masks, tagged = s.regions.plan_tiles(s.spde, keep, self.params.region_from == "mean" and not extending)
+        mean = self.params.region_from == "mean" and not extending
+        masks, tagged = s.regions.plan_tiles(s.spde, level, keep, mean, self.guard)
         changed = (masks != s.regions.mask()).reshape(s.ensemble, -1).any(axis=1)
         if changed.any():
             self._move(masks, n, self._content(), sort=not extending)
@@ -135,6 +147,20 @@ class Regridder:
         ppc = self.solver.spde.density()
         ppc *= self.solver.grid.cell_volume
         return ppc
+
+    @property
+    def guard(self) -> float:
+        """With ``region_from = "mean"``, a member's own cells below this join the region at every
+        regrid (the trigger where extensions are on; −∞ where they are off)."""
+        return self.params.trigger if self.params.regrid_floor > 0 else -math.inf
+
+    def _mean_content(self, ppc: np.ndarray) -> np.ndarray:
+        """What a regrid from q̄ tags boxes by: the content of the deterministic q̄ (eq. 10),
+        ``q̄ V_c``, for every member, and −1 where the member's own content ``ppc`` is below
+        :attr:`guard` (members with the same tags are clustered once, :meth:`Region.plan`)."""
+        s = self.solver
+        mean = s.spde.qbar.to_numpy().astype(np.float64) * s.grid.cell_volume
+        return np.where(ppc < self.guard, -1.0, mean)
 
     def _log(self, n: int, tagged: int, on_demand: int) -> None:
         """One record of :data:`REGRID_LOG`; ``efficiency`` is ``tagged`` (the cells below

@@ -56,7 +56,7 @@ class Tiles:
 
     @ti.kernel
     def flag(self, spde: ti.template(), region: ti.template(), threshold: ti.f64, keep: ti.f64,
-             mean: ti.template()) -> ti.i32:
+             mean: ti.template(), guard: ti.f64) -> ti.i32:
         """Flag each tile of each member: 1 where one of its cells is tagged after the buffer (a cell
         within Chebyshev distance ``buffer`` of it, across periodic sides, holds a content
         ``q V_c`` below ``threshold``: the rule of :func:`clustering.tag`, negative cells included), or
@@ -66,8 +66,11 @@ class Tiles:
         contents are those of the deterministic q̄ (eq. 10), the same for every member: the region
         then moves as a function of time alone, never of a member's own noise, and the hybrid stays
         exact while it moves (choosing cells by each member's noisy density moves mass across the
-        interface: ``benchmarks/moving_region.py``). Returns the cells below ``threshold``
-        themselves (before the buffer), all members (the regrid log's efficiency)."""
+        interface: ``benchmarks/moving_region.py``); a tile is then also flagged where one of its
+        cells is within ``buffer`` of a cell whose member's own content is below ``guard`` (the
+        positivity guard of ``regrid_floor``; −∞: none), so that no tile q̄ releases leaves a
+        member's cell below it uncovered. Returns the cells below ``threshold`` themselves
+        (before the buffer), all members (the regrid log's efficiency)."""
         side, b = ti.static(self.side, self.buffer)
         tagged = 0
         for K in ti.grouped(self.flags):
@@ -81,7 +84,7 @@ class Tiles:
                     old = old or region.covered[region.member(K[0], C)] != 0
                     if self._content(spde, region, K[0], C, mean) < threshold:
                         tagged += 1
-                    least = ti.math.inf  # the least content within the buffer
+                    least, own = ti.math.inf, ti.math.inf  # the least content within the buffer (q̄'s, the member's)
                     for O in ti.grouped(ti.ndrange(*([2 * b + 1] * self.dim))):
                         D, ok = C + O - b, True
                         for a in ti.static(range(self.dim)):
@@ -90,7 +93,9 @@ class Tiles:
                             ok = ok and 0 <= D[a] < self.n[a]
                         if ok:
                             least = ti.min(least, self._content(spde, region, K[0], D, mean))
-                    low = low or least < threshold
+                            if ti.static(mean):
+                                own = ti.min(own, self._content(spde, region, K[0], D, False))
+                    low = low or least < threshold or own < guard
                     stay = stay or least < keep
             self.flags[K] = ti.u8(low or (old and stay))
         return tagged

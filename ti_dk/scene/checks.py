@@ -139,14 +139,11 @@ def check_potential(scene: Scene) -> None:
 
 def check_hybrid_sizes(scene: Scene) -> None:
     """The hybrid's sizes in cells, bounded by the grid (beyond it they mean nothing, and a buffer
-    grows the region one cell at a time); ``region_from = "mean"`` only with tiles."""
+    grows the region one cell at a time)."""
     most, h = max(scene.grid.cells), scene.hybrid
     for name, value in (("buffer", h.buffer), ("min_box", h.min_box)):
         if value > most:
             raise ConfigError(f"{name} = {value:,}: give at most {most}, the most cells along an axis of this grid")
-    if h.region_from == "mean" and h.region == "boxes":
-        raise ConfigError('region_from = "mean" is for region = "tiles": the boxes are cut per member on the host; '
-                          'set region = "tiles" or region_from = "member"')
 
 
 def check_unused(scene: Scene) -> None:

@@ -57,7 +57,7 @@ METHODS = ("fv", "gaussian", "particle", "hybrid")
 SPDES = ("fv", "gaussian")  # the SPDE a hybrid run keeps on the whole grid
 GHOST_PROFILES = ("mean", "linear", "uniform")  # how sampled particles lie in their cell (see HybridSolver)
 REGIONS = ("tiles", "boxes")  # how the particle region covers the tagged cells (hybrid.tiles, hybrid.clustering)
-REGION_SOURCES = ("member", "mean")  # whose density a scheduled regrid of tiles tags (hybrid.tiles.Tiles.flag)
+REGION_SOURCES = ("mean", "member")  # whose density a scheduled regrid tags (hybrid.regridder.Regridder.regrid)
 BOUNDARY_KINDS = ("periodic", "neumann", "dirichlet")
 PRECISIONS = ("f32", "f64")
 PARTICLE_INITS = ("per_cell", "exact_uniform", "exact")
@@ -236,16 +236,18 @@ class HybridKeys:
                     _RG.tile, lo=0)
     release: float = key("real", "tiles: a covered tile leaves only when all its cells (with the buffer) hold at "
                          "least this times threshold (hysteresis)", _RG.release, lo=1.0)
-    region_from: str = key("choice", "tiles: whose density a scheduled regrid tags: each member's own (member) or "
-                           "the deterministic mean q-bar, one region for every member (mean: exact while the region "
-                           "moves; extensions still follow each member)", _RG.region_from, choices=REGION_SOURCES)
+    region_from: str = key("choice", "whose density a scheduled regrid tags: the deterministic mean q-bar, one "
+                           "region for every member (mean: exact while the region moves) or each member's own "
+                           "(member: biased while it moves)", _RG.region_from, choices=REGION_SOURCES)
     grid_efficiency: float = key("real", "boxes: smallest tagged fraction of a box", _RG.efficiency,
                                  lo=0.0, hi=1.0, above=True)
     min_box: int = key("int", "boxes: smallest box side in cells (at most the most cells along an axis)", _RG.min_box,
                        lo=1)
     max_box: int = key("int", "boxes: largest box side in cells", _RG.max_box, lo=1, hi=MAX_FIELD)
-    regrid_floor: float = key("real", "an uncovered cell below this times threshold before a step: cover all "
-                              "below threshold (0: scheduled regrids only)", _RG.regrid_floor, lo=0.0, hi=1.0)
+    regrid_floor: float = key("real", "positivity guard: a member's uncovered cell below this times threshold is "
+                              "covered before the next step (region_from mean: that cell and its buffer; member: "
+                              "all its cells below threshold); 0: off (it follows each member's own density)",
+                              _RG.regrid_floor, lo=0.0, hi=1.0)
     pool_layout: str = key("choice", "particle storage: flat (slots per member) or pointer (blocks of cells, "
                            "only where the region is)", "flat", choices=POOL_LAYOUTS)
 
