@@ -62,11 +62,9 @@ class Region:
         return sum(len(b) for b in self._boxes) if self.tiles is None else tiles.count(self._mask, self.tile)
 
     def plan_tiles(self, spde, level: float, keep: float, mean: bool, guard: float = -math.inf) -> tuple[np.ndarray, int]:
-        """A new region of tiles for every member from ``spde``, flagged on the device
-        (:meth:`Tiles.flag`; ``level``: tag the cells below it, ``threshold`` or at an extension from
-        q̄ the trigger; ``keep``: a covered tile stays while a cell near it holds less; ``mean``: tag
-        the deterministic q̄, not each member's q, and also each member's cells below ``guard``):
-        the masks, and how many cells were tagged. Reads back the flags only."""
+        """A new region of tiles for every member from ``spde``, flagged on the device (:meth:`Tiles.flag`:
+        ``level`` tags, ``keep`` keeps covered tiles, ``mean`` tags q̄ and each member's cells below
+        ``guard``): the masks, and how many cells were tagged. Reads back the flags only."""
         tagged = self.tiles.flag(spde, self, level, keep, mean, guard)
         return self.tiles.mask(), tagged
 
