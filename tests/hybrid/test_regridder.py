@@ -6,6 +6,7 @@ import pytest
 
 from ti_dk import load_scene
 from ti_dk.control.registry import make_solver
+from ti_dk.core.traffic import counted
 from ti_dk.hybrid import clustering
 
 from ..helpers import covered_nonnegative, run_steps
@@ -145,3 +146,26 @@ def test_regrid_on_demand():
     q = least.density() * vol
     assert q[~least.region()].min() >= 2.0 and q[~least.region()].min() < 4.0
     assert least.region().sum() < half.region().sum()
+
+
+@pytest.mark.parametrize("region_from", ["mean", "member"])
+def test_a_step_reads_back_a_few_counts(region_from):
+    # every host touch of the device counted (core.traffic): a step without a regrid reads a few counts
+    # and writes nothing; a regrid reads two counts, and where the region changed the tile flags and the
+    # move's two sums (Tally), never the density; over the run, at most 64 bytes a step on average
+    scene = load_scene("ellipse2d", cells=[48, 48], compare="none", seed=4, region_from=region_from,
+                       regrid_floor=0.6 if region_from == "member" else 0)
+    s = _solver(scene)
+    tiles = s.regions.tiles.flags.shape
+    rows = []
+    with counted() as t:
+        for n in range(150):
+            before = len(s.regrids)
+            t.reset()
+            s.step(n)
+            rows.append((len(s.regrids) > before, t.read, t.written))
+    regrid, read, written = np.array(rows).T
+    assert regrid.sum() > 10 and len({r["covered_cells"] for r in s.regrids}) >= 3  # the region moved
+    assert read[regrid == 0].max() <= 16 and written[regrid == 0].max() == 0
+    assert read.max() <= np.prod(tiles) + 64 < 8 * 48 * 48  # the flags at most: no grid-sized read
+    assert read.mean() <= 64

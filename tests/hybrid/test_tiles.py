@@ -43,6 +43,25 @@ def _blob(cells, **kw):
                           regrid_interval=10, t_end=0.001, ensemble=1, **kw)
 
 
+def _plan(s, old, side, *args):
+    """``Region.plan_tiles`` with the region ``old`` (cells): the masks (``old`` itself where none changed,
+    which plan_tiles says with None, having counted the tiles that change on the device: checked here)."""
+    s.regions.covered.from_numpy(old.astype(np.uint8))
+    masks, tagged = s.regions.plan_tiles(s.spde, *args)
+    flags = s.regions.tiles.flags.to_numpy().astype(bool)
+    changed = _touched(tiles.spread(flags, side, old.shape[1:]) != old, side, flags.shape)
+    assert s.regions.tiles.changed[None] == changed.sum() and (masks is None) == (changed.sum() == 0)
+    return (old if masks is None else masks), tagged
+
+
+def _touched(cells, side, shape):
+    """The tiles (``shape``: ``(ensemble, *tiles)``) holding a cell of ``cells``."""
+    out = np.zeros(shape, dtype=bool)
+    for e, *C in np.argwhere(cells):
+        out[(e, *(c // side for c in C))] = True
+    return out
+
+
 def test_the_blob_core_is_left_to_the_spde_from_the_start():
     # with boxes the region covered every cell (issue 40: 9,216 cells in 16 boxes on 96 × 96)
     scene = _blob(48)
@@ -76,20 +95,22 @@ def test_flags_follow_the_tag_rule_with_hysteresis(cells, boundary, side, buffer
     mean = rng.uniform(0, 12, size=(1, *cells))  # q̄ V_c, one for every member
     s.spde.qbar.from_numpy(mean / s.grid.cell_volume)
     for keep in (7.5, 5.0, np.inf):
-        s.regions.covered.from_numpy(old.astype(np.uint8))
-        masks, tagged = s.regions.plan_tiles(s.spde, 5.0, keep, False)
+        masks, tagged = _plan(s, old, side, 5.0, keep, False)
         want, n_low = _expected(content, old, 5.0, keep, side, buffer, periodic)
         assert np.array_equal(masks, want) and tagged == n_low
         if keep == 5.0:  # member 1 holds no cell below 5: it keeps nothing
             assert not masks[1].any()
         # region_from = "mean": every member's tags from q̄, whatever its own q (its own old region kept)
-        masks, tagged = s.regions.plan_tiles(s.spde, 5.0, keep, True)
+        masks, tagged = _plan(s, old, side, 5.0, keep, True)
         want, n_low = _expected(np.broadcast_to(mean, content.shape), old, 5.0, keep, side, buffer, periodic)
         assert np.array_equal(masks, want) and tagged == n_low
         # with the positivity guard: also each member's tiles near its own cells below 2 (member 1: none)
-        masks, tagged = s.regions.plan_tiles(s.spde, 5.0, keep, True, 2.0)
+        masks, tagged = _plan(s, old, side, 5.0, keep, True, 2.0)
         own, _ = _expected(content, np.zeros_like(old), 2.0, keep, side, buffer, periodic)
         assert np.array_equal(masks, want | own) and tagged == n_low and own.any() and not own[1].any()
+        # the same again from that region, which keeps all it covers: nothing changes, nothing is read
+        assert np.array_equal(_plan(s, masks, side, 5.0, np.inf, True, 2.0)[0], masks)
+        assert s.regions.tiles.changed[None] == 0
 
 
 def test_hysteresis_keeps_the_region_from_flickering():

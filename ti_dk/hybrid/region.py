@@ -61,12 +61,14 @@ class Region:
         """How many boxes :attr:`boxes` holds, all members."""
         return sum(len(b) for b in self._boxes) if self.tiles is None else tiles.count(self._mask, self.tile)
 
-    def plan_tiles(self, spde, level: float, keep: float, mean: bool, guard: float = -math.inf) -> tuple[np.ndarray, int]:
+    def plan_tiles(self, spde, level: float, keep: float, mean: bool,
+                   guard: float = -math.inf) -> tuple[np.ndarray | None, int]:
         """A new region of tiles for every member from ``spde``, flagged on the device (:meth:`Tiles.flag`:
         ``level`` tags, ``keep`` keeps covered tiles, ``mean`` tags q̄ and each member's cells below
-        ``guard``): the masks, and how many cells were tagged. Reads back the flags only."""
+        ``guard``): the masks (None where no member's region changed), and how many cells were
+        tagged. Reads back two counts, and the flags where the region changed."""
         tagged = self.tiles.flag(spde, self, level, keep, mean, guard)
-        return self.tiles.mask(), tagged
+        return (self.tiles.mask() if self.tiles.changed[None] else None), tagged
 
     def mask(self) -> np.ndarray:
         """The region of every member, ``(ensemble, *cells)`` booleans (from the host's copy: no

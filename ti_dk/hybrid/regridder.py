@@ -7,7 +7,9 @@ import math
 
 import numpy as np
 
+from .. import pools
 from . import clustering
+from .tally import Tally
 
 # one record per regrid; on_demand: members regridded off schedule (0: a scheduled regrid of all)
 REGRID_LOG = ("step", "boxes", "covered_cells", "efficiency", "created", "removed", "on_demand")
@@ -39,6 +41,7 @@ class Regridder:
 
     def __init__(self, solver, params: clustering.RegridParams, interval: int):
         self.solver, self.params, self.interval = solver, params, interval
+        self.tally = Tally(solver.regions)  # a move's room and removed content, summed on the device
         self.log: list[dict] = []  # one record of REGRID_LOG per regrid
         self.change = 0.0  # created − removed at this step's regrid
         self._removed = 0.0  # SPDE content Σ q V_c of the cells the last regrid covered anew
@@ -83,7 +86,7 @@ class Regridder:
             return
         ppc = self._content()
         masks, tagged = s.regions.plan(self._mean_content(ppc) if p.region_from == "mean" else ppc)
-        self._move(masks, n, ppc, sort=True)
+        self._move(masks, n, sort=True)
         self._log(n, tagged, 0)
 
     def extend(self, n: int) -> None:
@@ -120,25 +123,27 @@ class Regridder:
         ppc = self._content()
         tags = clustering.tag(ppc, level)  # once: the extension and its log's count
         masks, members = s.regions.plan_extension(tags)
-        self._move(masks, n, ppc)
+        self._move(masks, n)
         self._log(n, int(tags.sum()), members)
 
     def _retile(self, n: int, level: float, keep: float, extending: bool) -> None:
         """A region of tiles flagged on the device (:meth:`Region.plan_tiles`; ``level``: a tile holding a
         cell below it, grown by the buffer, is covered; ``keep``: a covered tile stays while a cell
         near it holds less). Members whose region is unchanged (with
-        hysteresis, most at most regrids) cost nothing more: where none changed, nothing
-        grid-sized is read or written, and no particle moves (the order of the particles in a pool
+        hysteresis, most at most regrids) cost nothing more: where none changed (counted on the
+        device), two counts are read back, nothing else, and no particle moves (the order of the particles in a pool
         changes no result, so the scheduled regrid's sort is skipped too)."""
         s = self.solver
         mean = self.params.region_from == "mean" and not extending
         masks, tagged = s.regions.plan_tiles(s.spde, level, keep, mean, self.guard)
-        changed = (masks != s.regions.mask()).reshape(s.ensemble, -1).any(axis=1)
-        if changed.any():
-            self._move(masks, n, self._content(), sort=not extending)
+        members = 0  # members whose region changed
+        if masks is not None:
+            members = int((masks != s.regions.mask()).reshape(s.ensemble, -1).any(axis=1).sum())
+            s.regions.tiles.aim(self.tally.target)  # the flags' region, on the device
+            self._move(masks, n, sort=not extending, aimed=True)
         else:
             self._removed, self._created = 0.0, 0
-        self._log(n, tagged, int(changed.sum()) if extending else 0)
+        self._log(n, tagged, members if extending else 0)
 
     def _content(self) -> np.ndarray:
         """The SPDE content of every cell, ``q V_c`` (particles per cell, float64), scaled in place:
@@ -177,26 +182,28 @@ class Regridder:
     def set_region(self, masks: np.ndarray, n: int) -> None:
         """Make ``masks`` (``(ensemble, *cells)`` booleans) the particle region at step ``n``, its
         diagnostics up to date (a region set from outside, between steps)."""
-        self._move(masks, n, self._content())
+        self._move(masks, n)
         self.solver.diagnose()
 
-    def _move(self, masks: np.ndarray, n: int, ppc: np.ndarray, sort: bool = False) -> None:
+    def _move(self, masks: np.ndarray, n: int, sort: bool = False, aimed: bool = False) -> None:
         """:meth:`set_region` inside a step (regrid, extension), where the step's own
         synchronisation brings the diagnostics up to date: no full-grid pass here. With ``sort``
         (the scheduled regrids) the kept particles are put in cell order (:meth:`Coupling.sort`).
         Between steps every particle lies in a covered cell, so a region that only grows keeps
         them all where they are (:meth:`pools.ParticlePool.settle`; a compaction would copy every
-        particle at every extension)."""
+        particle at every extension). The pool's room and the content the new cells held are
+        summed on the device (:class:`~.tally.Tally`; ``aimed``: its target is ``masks`` already)."""
         s = self.solver
         masks = np.broadcast_to(masks, (s.ensemble, *s.n))
+        if not aimed:
+            self.tally.aim(masks)
+        most, self._removed = self.tally.count(s.spde)
         old = s.regions.mask()
         grown = s.regions.grown(masks)
         near = grown | old  # where particles can be while the region moves: old, new, ring
-        s.pool = s.pool.fitted(self._estimate(masks, near, ppc), near)
+        s.pool = s.pool.fitted(self.tally.per_cell(s.spde), near) if s.pool.by_cell else s.pool.grown(pools.capacity(most))
         sort = sort and not s.pool.cell_ordered
         cells, n_new, n_gone = s.regions.stage(masks)
-        # the SPDE content the newly covered cells held, summed here: the same bits on any thread count
-        self._removed = float(ppc.reshape(-1)[cells[:n_new]].sum())
         s.sampler.cover(s.pool, s.cur, n * s.substeps, s.tilt_on(n), s.coupling.count,
                         cells, n_new, n_gone, int(sort or n_gone > 0))
         self._created = int(s.sampler.created[None])
@@ -212,18 +219,6 @@ class Regridder:
         if s.sampler.check_need() > s.pool.capacity:  # the estimate bounds it; kept as a guard
             raise RuntimeError("particle pool estimate too small at a regrid")
         self.change += self._created - self._removed
-
-    def _estimate(self, masks: np.ndarray, near: np.ndarray, ppc: np.ndarray) -> np.ndarray:
-        """Slots each cell can ask for around a regrid (``(ensemble, *cells)``; the pool adds the
-        headroom of :func:`pools.capacity`): the region and its ghost ring full, and a covered
-        cell's reservoir ghosts."""
-        grid = self.solver.grid
-        need = np.maximum(ppc, 0)  # in place from here: one grid-sized array per regrid, not three
-        need *= near
-        np.ceil(need, out=need)
-        if grid.has_dirichlet:
-            need += grid.reservoir_ppc_max * 3 ** (grid.dim - 1) * masks
-        return need
 
     # -- checkpoints -------------------------------------------------------------------------
     def state(self) -> dict[str, np.ndarray]:

@@ -39,6 +39,7 @@ class Tiles:
         self.dim, self.n = grid.dim, grid.cells
         self.shape = tuple(-(-m // side) for m in self.n)  # tiles per axis
         self.flags = ti.field(ti.u8, shape=(ensemble, *self.shape))  # 1: the tile is in the particle region
+        self.changed = ti.field(ti.i32, shape=())  # tiles whose cover the last flag changed, all members
 
     def mask(self) -> np.ndarray:
         """The region the flags give, ``(ensemble, *cells)`` booleans (one small read: the flags)."""
@@ -70,18 +71,21 @@ class Tiles:
         cells is within ``buffer`` of a cell whose member's own content is below ``guard`` (the
         positivity guard of ``regrid_floor``; −∞: none), so that no tile q̄ releases leaves a
         member's cell below it uncovered. Returns the cells below ``threshold`` themselves
-        (before the buffer), all members (the regrid log's efficiency)."""
+        (before the buffer), all members (the regrid log's efficiency); :attr:`changed` counts the
+        tiles whose cells the new flags cover otherwise than ``region.covered`` does."""
         side, b = ti.static(self.side, self.buffer)
         tagged = 0
+        self.changed[None] = 0
         for K in ti.grouped(self.flags):
-            old, low, stay = False, False, False
+            old, whole, low, stay = False, True, False, False
             for I in ti.grouped(ti.ndrange(*([side] * self.dim))):
                 C = ti.Vector([K[a + 1] * side + I[a] for a in ti.static(range(self.dim))])
                 inside = True
                 for a in ti.static(range(self.dim)):
                     inside = inside and C[a] < self.n[a]
                 if inside:
-                    old = old or region.covered[region.member(K[0], C)] != 0
+                    now = region.covered[region.member(K[0], C)] != 0
+                    old, whole = old or now, whole and now
                     if self._content(spde, region, K[0], C, mean) < threshold:
                         tagged += 1
                     least, own = ti.math.inf, ti.math.inf  # the least content within the buffer (q̄'s, the member's)
@@ -97,9 +101,21 @@ class Tiles:
                                 own = ti.min(own, self._content(spde, region, K[0], D, False))
                     low = low or least < threshold or own < guard
                     stay = stay or least < keep
-            self.flags[K] = ti.u8(low or (old and stay))
+            flag = low or (old and stay)
+            self.flags[K] = ti.u8(flag)
+            if (flag and not whole) or (not flag and old):
+                self.changed[None] += 1
         return tagged
 
+
+    @ti.kernel
+    def aim(self, target: ti.template()):
+        """``target`` (a cell mask, ``(ensemble, *cells)``) set to the region the flags give (:meth:`mask`)."""
+        for J in ti.grouped(target):
+            K = J
+            for a in ti.static(range(self.dim)):
+                K[a + 1] = J[a + 1] // self.side
+            target[J] = self.flags[K]
 
 
 def spread(flags: np.ndarray, side: int, n: tuple[int, ...]) -> np.ndarray:

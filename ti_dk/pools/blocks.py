@@ -36,6 +36,7 @@ class BlockPool:
         self.grid, self.ensemble, self.capacity, self.real = grid, ensemble, capacity, real
         self.dim, self.cells = grid.dim, tuple(grid.cells)
         self.cell_ordered = True  # slots are grouped by block of cells: no sort needed for locality
+        self.by_cell = True  # plans its room per block: fitted() takes each cell's need
         self.block_grid = g = BlockGrid(grid, ensemble)
         self.slot_bytes = self.dim * np.dtype(numpy_dtype(real)).itemsize + 8 + 1  # x, pid, keep
         fb = ti.FieldsBuilder()

@@ -22,6 +22,7 @@ class ParticlePool:
         self.ensemble, self.capacity, self.dim, self.real = ensemble, capacity, dim, real
         self.buffers, self.ids = buffers, ids
         self.cell_ordered = False  # slots are not grouped by cell (the hybrid sorts them at regrids)
+        self.by_cell = False  # plans its room per member: grown(capacity(the most any member needs)) is fitted()
         self.blocks = -(-capacity // BLOCK)  # compaction blocks per member
         self.x = ti.Vector.field(dim, real, shape=(buffers, ensemble, capacity))  # positions [length]
         if ids:  # identity: two words keying the particle's random numbers (solver-defined)
@@ -76,12 +77,6 @@ class ParticlePool:
         return canonical(x, self.pid.to_numpy()[b, :, :top], n) if self.ids else (x, None, n)
 
     # -- the hybrid's interface (see the module docstring) ----------------------------------
-    def fitted(self, need: np.ndarray, cells: np.ndarray) -> "ParticlePool":
-        """A pool with room for ``need`` (``(ensemble, *cells)``: slots each cell may ask for) in
-        every member (``cells``: where particles may lie; every cell may, here)."""
-        axes = tuple(range(1, need.ndim))
-        return self.grown(capacity(float(need.sum(axis=axes).max()) if self.ensemble else 0.0))
-
     def retain(self, cells: np.ndarray) -> None:
         """Nothing to release: the slots of a member are not tied to cells."""
 

@@ -1,0 +1,113 @@
+"""What moving the hybrid's region costs, summed on the device (paper §3.2): the particle slots the
+pool must offer around a regrid and the SPDE content the newly covered cells hold, so that a regrid
+reads back two numbers instead of the grid's density."""
+
+import numpy as np
+import taichi as ti
+
+from ..core.grid import PERIODIC
+
+
+@ti.data_oriented
+class Tally:
+    """The region a regrid moves to (:attr:`target`) and the two sums of the move.
+
+    A cell near the move (covered now, or within Chebyshev distance 1 of the target, across periodic
+    sides: where particles can be while the region moves) may ask for ``⌈max(q V_c, 0)⌉`` slots (its
+    content, whole: the region and its ghost ring full), and a target cell beside a Dirichlet side
+    for ``reservoir_ppc_max · 3^(d−1)`` more (its reservoir ghosts). The sums run row by row, each
+    row in order and the rows in order, so that they are the same bits on any thread count.
+    """
+
+    def __init__(self, region):
+        self.region, self.grid = region, region.grid
+        E, n = region.ensemble, region.n
+        self.target = ti.field(ti.u8, shape=(E, *n))  # 1 where the cell is in the region a regrid moves to
+        self.rows = ti.field(ti.f64, shape=(E, n[0], 2))  # per row (member, first index): slots asked, content covered anew
+        self.out = ti.field(ti.f64, shape=2)  # the most slots a member asks, the content covered anew (all members) [particles]
+
+    def aim(self, masks: np.ndarray) -> None:
+        """Make ``masks`` (``(ensemble, *cells)`` booleans) the target (a region made on the host)."""
+        self.target.from_numpy(np.ascontiguousarray(masks, dtype=np.uint8))
+
+    def count(self, spde) -> tuple[float, float]:
+        """The most slots any member may ask for around the move to :attr:`target`, and the SPDE
+        content ``Σ q V_c`` of the cells the move covers anew, all members (16 bytes read back)."""
+        self._sum(spde)
+        most, removed = self.out.to_numpy()
+        return float(most), float(removed)
+
+    def per_cell(self, spde) -> np.ndarray:
+        """The slots each cell may ask for, ``(ensemble, *cells)`` (a pool that plans by cell)."""
+        out = np.zeros(self.target.shape, dtype=np.float64)
+        self._fill(spde, out)
+        return out
+
+    @ti.func
+    def _near(self, e, C) -> bool:
+        """Whether cell ``C`` of member ``e`` is covered now or within distance 1 of the target."""
+        r = self.region
+        near = r.covered[r.member(e, C)] != 0
+        for I in ti.grouped(ti.ndrange(*([3] * self.grid.dim))):
+            D, ok = C + I - 1, True
+            for a in ti.static(range(self.grid.dim)):
+                if ti.static(self.grid.boundary[a][0] == PERIODIC):
+                    D[a] = (D[a] + r.n[a]) % r.n[a]
+                ok = ok and 0 <= D[a] < r.n[a]
+            if ok:
+                near = near or self.target[r.member(e, D)] != 0
+        return near
+
+    @ti.func
+    def _cell(self, spde: ti.template(), e, C):
+        """Cell ``C`` of member ``e``: the slots it may ask for, and its content if the move covers it anew."""
+        r = self.region
+        J = r.member(e, C)
+        content = ti.cast(spde.q[J], ti.f64) * ti.static(self.grid.cell_volume)
+        need, gained = 0.0, 0.0
+        if self._near(e, C):
+            need = ti.ceil(ti.max(content, 0.0))
+        if self.target[J] != 0:
+            need += ti.static(self.grid.reservoir_ppc_max * 3 ** (self.grid.dim - 1) if self.grid.has_dirichlet else 0.0)
+            if r.covered[J] == 0:
+                gained = content
+        return need, gained
+
+    @ti.kernel
+    def _sum(self, spde: ti.template()):
+        """:attr:`rows`, then :attr:`out` from them, in a fixed order."""
+        n, d = ti.static(self.region.n, self.grid.dim)
+        for e, i in ti.ndrange(self.target.shape[0], n[0]):  # rows in parallel; each row's cells in order
+            need, gained = 0.0, 0.0
+            if ti.static(d == 1):
+                need, gained = self._cell(spde, e, ti.Vector([i]))
+            else:
+                for R in ti.grouped(ti.ndrange(*n[1:])):
+                    C = ti.Vector.zero(ti.i32, d)
+                    C[0] = i
+                    for k in ti.static(range(d - 1)):
+                        C[k + 1] = R[k]
+                    a, b = self._cell(spde, e, C)
+                    need += a
+                    gained += b
+            self.rows[e, i, 0] = need
+            self.rows[e, i, 1] = gained
+        ti.loop_config(serialize=True)
+        for _ in range(1):
+            most, removed = 0.0, 0.0
+            for e in range(self.target.shape[0]):
+                total = 0.0
+                for i in range(n[0]):
+                    total += self.rows[e, i, 0]
+                    removed += self.rows[e, i, 1]
+                most = ti.max(most, total)
+            self.out[0] = most
+            self.out[1] = removed
+
+    @ti.kernel
+    def _fill(self, spde: ti.template(), out: ti.types.ndarray()):
+        """Each cell's slots into ``out`` (:meth:`per_cell`)."""
+        for J in ti.grouped(self.target):
+            C = ti.Vector([J[a + 1] for a in ti.static(range(self.grid.dim))])
+            need, _gained = self._cell(spde, J[0], C)
+            out[J] = need
