@@ -63,10 +63,9 @@ class Region:
 
     def plan_tiles(self, spde, level: float, keep: float, mean: bool,
                    guard: float = -math.inf) -> tuple[np.ndarray | None, int]:
-        """A new region of tiles for every member from ``spde``, flagged on the device (:meth:`Tiles.flag`:
-        ``level`` tags, ``keep`` keeps covered tiles, ``mean`` tags q̄ and each member's cells below
-        ``guard``): the masks (None where no member's region changed), and how many cells were
-        tagged. Reads back two counts, and the flags where the region changed."""
+        """A new region of tiles for every member, flagged on the device by :meth:`Tiles.flag`: the masks
+        (None where no member's region changed: two counts read back, not the flags), and how
+        many cells were tagged."""
         tagged = self.tiles.flag(spde, self, level, keep, mean, guard)
         return (self.tiles.mask() if self.tiles.changed[None] else None), tagged
 
