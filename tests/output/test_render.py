@@ -196,6 +196,10 @@ def test_boxes_are_drawn_inside_the_region_and_holes_are_dotted():
     assert 0.2 < (hole < 90).mean() < 0.8 and hole.max() > 200  # black dots on white
     assert not _red(img[Y(10) - 1:Y(10) + 2, X(10) + round(s):X(18) - round(s)]).any()  # no box line there
     assert "holes dotted" in r.axes[0][0].get_title() and "particles per cell" in r.header.get_text()
+    # the same region as tiles: its outline and holes as before, no tile drawn inside it
+    img = r.frame(0.0, [Panel("hybrid", ppc, RING, tiles=True)]).astype(int)
+    assert not _red(img[y0:y0 + h, x0:x0 + w]).any() and darkest(4, 4, 28).max() < 90
+    assert "in 4 tiles;" in r.axes[0][0].get_title()
 
 
 def test_holes_and_box_edges_from_a_mask_set_by_hand():

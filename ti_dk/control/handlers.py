@@ -269,7 +269,8 @@ class Frames:
         from ..output.render import Panel
 
         sc, boxes = self.scene, self.solver.boxes
-        panels = [Panel(sc.method.name, self.solver.density()[0] * sc.grid.cell_volume, boxes[0] if boxes else None)]
+        panels = [Panel(sc.method.name, self.solver.density()[0] * sc.grid.cell_volume, boxes[0] if boxes else None,
+                        tiles=sc.method.name == "hybrid" and sc.hybrid.region == "tiles")]
         if self.other:
             panels.append(Panel(sc.method.compare, self.other.density()[0] * sc.grid.cell_volume))
         return panels

@@ -15,7 +15,7 @@ lower arrow), exactly one cell in size at any resolution.
 
 The particle region (the union of the hybrid's boxes; the cell mask's outline) is outlined in
 black inside a white line, visible on every colour, its Berger–Rigoutsos boxes inside it as thin
-red lines (``BOX``), a hole in it (uncovered cells no path of face neighbours outside the region
+red lines (``BOX``; a region of tiles shows its outline only, the density inside left clear), a hole in it (uncovered cells no path of face neighbours outside the region
 links to the domain's edge, :func:`holes`) by a dotted black line on white. Each side is labelled
 with its boundary kind (:func:`side_labels`). 2D: one panel per method side by side (the paper's
 Figs. 5–6), an external potential's contours in white, every 2 k_BT up to 12 above its least
@@ -56,6 +56,7 @@ class Panel:
     title: str
     ppc: np.ndarray  # (*cells,) particles per cell
     boxes: list | None = None  # [(lo, hi), ...] in cells (hybrid only)
+    tiles: bool = False  # the boxes are the region's tiles: only the region's outline is drawn
 
 
 def colour_max(ppc0: np.ndarray, reservoirs=()) -> float:
@@ -351,8 +352,8 @@ class Renderer:
             any_hole = self._slices(r, p, ppc, region)
             text = f"{p.title}: {neg:,} negative cell{'s' * (neg != 1)}"
             if region is not None:
-                text += (f"; particle region {int(region.sum()):,} cells in {len(p.boxes)} "
-                         f"box{'es' * (len(p.boxes) != 1)} (red){'; holes dotted' * any_hole}")
+                what = f"tile{'s' * (len(p.boxes) != 1)}" if p.tiles else f"box{'es' * (len(p.boxes) != 1)} (red)"
+                text += f"; particle region {int(region.sum()):,} cells in {len(p.boxes)} {what}{'; holes dotted' * any_hole}"
             if self.dim == 2:
                 self.axes[r][0].set_title(text, fontsize=9.5)
             else:
@@ -380,7 +381,7 @@ class Renderer:
                 rplane = region if cut is None else np.take(region, mids[cut], axis=cut)
                 hole, d = holes(rplane), (self.dx[a], self.dx[b])
                 any_hole |= bool(hole.any())
-                segs = [box_edges(p.boxes, (a, b), self.dx, cut, mids[cut] if cut is not None else 0),
+                segs = [segs[0] if p.tiles else box_edges(p.boxes, (a, b), self.dx, cut, mids[cut] if cut is not None else 0),
                         outline(rplane | hole, d), outline(hole, d)]
             for lc, s in zip(self.lines[r][k], segs[:1] + segs[1:2] * 2 + segs[2:] * 2):  # as (BOX, *OUTLINE, *HOLE)
                 lc.set_segments(s)
