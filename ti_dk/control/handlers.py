@@ -17,6 +17,7 @@ from .checkpoint import Progress, write_checkpoint
 from ..scene import observables
 from ..scene.schema import Scene
 from ..output.files import RunFile, frame_file, pack_ids, write_openpmd
+from ..methods.records import MemberSums
 from ..methods.solver import Solver
 from ..core.stats import CellStats
 
@@ -150,8 +151,9 @@ class Statistics:
 class Observations:
     """Per member, every ``scene.observe_every`` steps, step 0 and the last: its mass and negative
     cells, for a solver with a particle region the particles in it and its cells, and the particle
-    count of each region of ``[observables]`` (:mod:`ti_dk.scene.observables`), from one copy of
-    the densities. ``series``: name → one entry per record (restored from a checkpoint or empty);
+    count of each region of ``[observables]`` (:mod:`ti_dk.scene.observables`), summed on the
+    device (:class:`~ti_dk.methods.records.MemberSums`: one small read a record, not the
+    densities). ``series``: name → one entry per record (restored from a checkpoint or empty);
     written to the run file by :meth:`flush` (``/series``, ``/observables``)."""
 
     part = "statistics"
@@ -160,6 +162,7 @@ class Observations:
         self.scene, self.solver, self.rf = scene, solver, rf
         self.series = series  # "time" and each series' per-member values, per record
         self.masks = observables.masks(scene)  # each observable's cells
+        self.sums: MemberSums | None = None  # made at the first record
         self.done = 0  # records in the file
 
     def due(self, n: int) -> bool:
@@ -169,13 +172,9 @@ class Observations:
     def write(self, n: int) -> None:
         """Record step ``n`` per member: mass, negative cells, the region's particles and cells, each
         observable's count."""
-        q = self.solver.density() * self.scene.grid.cell_volume  # particles per cell, (members, *cells)
-        axes = tuple(range(1, q.ndim))
-        record = {"time": n * self.scene.dt, "mass": q.sum(axis=axes), "negative_cells": (q < 0).sum(axis=axes)}
-        region = self.solver.region()
-        if region is not None:
-            record |= {"particles": np.where(region, q, 0.0).sum(axis=axes), "region_cells": region.sum(axis=axes)}
-        record |= {name: q[:, m].sum(axis=1) for name, m in self.masks.items()}
+        if self.sums is None:
+            self.sums = MemberSums(self.solver.grid, self.solver.ensemble, self.masks)
+        record = {"time": n * self.scene.dt} | self.sums.record(*self.solver.content())
         for k, v in record.items():
             self.series.setdefault(k, []).append(v)
 

@@ -228,6 +228,10 @@ class HybridSolver(RegionSolver):
         """The particle region of every member, ``(ensemble, *cells)`` booleans."""
         return self.regions.mask()
 
+    def content(self) -> tuple:
+        """The SPDE's ``q`` (covered cells hold their counts), ``V_c``, the covered mask."""
+        return self.spde.q, self.grid.cell_volume, self.regions.covered
+
     def diagnostics(self) -> dict[str, float]:
         """The SPDE's diagnostics of the last step, with the particles' inflow at walls and
         reservoirs, clamped steps, the particle count and the last regrid's change of the total."""

@@ -151,6 +151,10 @@ class SPDESolver(Solver):
         """Number density of every member, ``(ensemble, *cells)``, float64 (a fresh array: callers may change it)."""
         return self.q.to_numpy().astype(np.float64, copy=False)
 
+    def content(self) -> tuple:
+        """``q`` [particles / volume], ``V_c``, no region (:meth:`Solver.content`)."""
+        return self.q, self.grid.cell_volume, None
+
     def diagnostics(self) -> dict[str, float]:
         """After the last step: mass, the smallest density, negative cells, the Dirichlet inflow."""
         return {"mass": self.mass[None], "min_density": float(self.q_min[None]),

@@ -375,6 +375,11 @@ class ParticleSolver(Placement, Solver):
         self._bin(self.cur)
         return self.count.to_numpy().astype(np.float64) / self.grid.cell_volume
 
+    def content(self) -> tuple:
+        """The particles binned per cell, 1, no region (:meth:`Solver.content`)."""
+        self._bin(self.cur)
+        return self.count, 1.0, None
+
     def diagnostics(self) -> dict[str, float]:
         """After the last step: the particles, the Dirichlet inflow and the clamped axis steps."""
         return {

@@ -56,6 +56,12 @@ class Solver:
         """The particle region of every member, ``(ensemble, *cells)`` booleans; None without one."""
         return None
 
+    def content(self) -> tuple:
+        """On the device, what :meth:`density` reads: its field ``(ensemble, *cells)`` (filled: any
+        kernel it needs has run), the factor that makes it particles per cell, and the particle
+        region's u8 field (None without one): for sums on the device (:mod:`.records`)."""
+        raise NotImplementedError
+
     def snapshot(self, member: int = 0) -> Snapshot:
         """Member ``member`` as its openPMD snapshot shows it: its density."""
         return Snapshot(density=self.density()[member])

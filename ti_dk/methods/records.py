@@ -1,0 +1,92 @@
+"""A run's per-member record, summed on the device: each member's particles, negative cells, the
+particles and cells of its particle region, and the particles in each named set of cells, read
+back as one small array (``ensemble × (4 + sets)`` numbers) instead of the whole density."""
+
+import numpy as np
+import taichi as ti
+
+from ..core.grid import Grid
+
+RECORD = ("mass", "negative_cells", "particles", "region_cells")  # the fixed columns, then one per set
+
+
+@ti.data_oriented
+class MemberSums:
+    """Per-member sums over a solver's content field (:meth:`Solver.content`).
+
+    Row by row (a row: a member and a first index), each row's cells in order, then each member's
+    rows in order, so that the sums are the same bits on any thread count.
+    """
+
+    def __init__(self, grid: Grid, ensemble: int, sets: dict[str, np.ndarray]):
+        self.grid, self.ensemble, self.names = grid, ensemble, tuple(sets)
+        self.n_sets = len(sets)
+        n, k = grid.cells, len(RECORD) + len(sets)
+        self.sets = ti.field(ti.u8, shape=(max(len(sets), 1), *n))  # 1 where the cell is in set s (by name)
+        if sets:
+            self.sets.from_numpy(np.stack(list(sets.values())).astype(np.uint8))
+        self.rows = ti.field(ti.f64, shape=(ensemble, n[0], k))  # per row: its part of each column
+        self.out = ti.field(ti.f64, shape=(ensemble, k))  # per member: each column [particles or cells]
+
+    def record(self, field, scale: float, region=None) -> dict[str, np.ndarray]:
+        """Each member's columns of :data:`RECORD` (``particles`` and ``region_cells`` only with a
+        ``region``, a ``(ensemble, *cells)`` u8 field) and one per set, by its name: the content is
+        ``field · scale`` [particles per cell]. One read of ``ensemble × (4 + sets)`` numbers."""
+        if region is None:
+            self._sum(field, scale, self.sets, False)
+        else:
+            self._sum(field, scale, region, True)
+        out = self.out.to_numpy()
+        rec = {name: out[:, i] for i, name in enumerate(RECORD)}
+        rec["negative_cells"] = rec["negative_cells"].astype(np.int64)
+        if region is None:
+            del rec["particles"], rec["region_cells"]
+        else:
+            rec["region_cells"] = rec["region_cells"].astype(np.int64)
+        return rec | {name: out[:, len(RECORD) + s] for s, name in enumerate(self.names)}
+
+    @ti.func
+    def _add(self, field: ti.template(), scale: ti.f64, region: ti.template(), has_region: ti.template(),
+             e, i, C):
+        """Cell ``C`` of member ``e`` added to row ``(e, i)``."""
+        J = ti.Vector.zero(ti.i32, self.grid.dim + 1)
+        J[0] = e
+        for a in ti.static(range(self.grid.dim)):
+            J[a + 1] = C[a]
+        v = ti.cast(field[J], ti.f64) * scale
+        self.rows[e, i, 0] += v
+        if v < 0:
+            self.rows[e, i, 1] += 1.0
+        if ti.static(has_region):
+            if region[J] != 0:
+                self.rows[e, i, 2] += v
+                self.rows[e, i, 3] += 1.0
+        for s in ti.static(range(self.n_sets)):
+            S = ti.Vector.zero(ti.i32, self.grid.dim + 1)
+            S[0] = s
+            for a in ti.static(range(self.grid.dim)):
+                S[a + 1] = C[a]
+            if self.sets[S] != 0:
+                self.rows[e, i, ti.static(len(RECORD) + s)] += v
+
+    @ti.kernel
+    def _sum(self, field: ti.template(), scale: ti.f64, region: ti.template(), has_region: ti.template()):
+        n, d, k = ti.static(self.grid.cells, self.grid.dim, self.rows.shape[2])
+        for e, i in ti.ndrange(self.ensemble, n[0]):
+            for c in ti.static(range(k)):
+                self.rows[e, i, c] = 0.0
+            if ti.static(d == 1):
+                self._add(field, scale, region, has_region, e, i, ti.Vector([i]))
+            else:
+                for R in ti.grouped(ti.ndrange(*n[1:])):
+                    C = ti.Vector.zero(ti.i32, d)
+                    C[0] = i
+                    for a in ti.static(range(d - 1)):
+                        C[a + 1] = R[a]
+                    self._add(field, scale, region, has_region, e, i, C)
+        for e in range(self.ensemble):
+            for c in ti.static(range(k)):
+                total = 0.0
+                for i in range(n[0]):
+                    total += self.rows[e, i, c]
+                self.out[e, c] = total
