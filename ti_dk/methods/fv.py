@@ -114,14 +114,13 @@ class SPDESolver(Solver):
             self.qbar.from_numpy(np.ascontiguousarray(q0[:1], dtype=numpy_dtype(self.real)))
 
     def replaced_in(self, mask) -> None:
-        """Declare that after every step the caller overwrites q wherever the u8 field ``mask``
-        (shaped like q) is 1, from something else (the hybrid's covered cells take their particle
-        counts, eq. 12): the step then leaves such a cell as it was and skips what only those cells read,
-        the fluxes (and their normals) of a group of ``G`` cells whose lower faces all have
-        such cells on both sides. Every other cell's q and every other face's flux keep their bits
-        (each face's noise is keyed on the face); q̄ may round differently in the last bit (fast
-        math compiles the kernel anew). Call before the first step (the kernels compile the
-        choice in). In a 3D hybrid a large share of the cells are such."""
+        """Declare that after every step the caller overwrites q wherever the u8 field ``mask`` (shaped
+        like q) is 1, from something else (the hybrid's covered cells take their particle counts,
+        eq. 12): the step then leaves such a cell as it was and skips what only those cells read, the
+        fluxes (and their normals) of a group of ``G`` cells whose lower faces all have such cells on
+        both sides. Every other cell's q and every other face's flux keep their bits (each face's
+        noise is keyed on the face); q̄ may round differently in the last bit (fast math compiles the
+        kernel anew). Call before the first step (the kernels compile the choice in)."""
         self.replaced = mask
 
     @property
