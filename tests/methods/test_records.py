@@ -5,7 +5,7 @@ import taichi as ti
 
 from ti_dk import load_scene
 from ti_dk.core.grid import Grid
-from ti_dk.methods.records import MemberSums
+from ti_dk.methods.records import MemberSums, Scalars
 
 
 @pytest.mark.parametrize("cells", [[13], [9, 7], [5, 4, 6]])
@@ -30,3 +30,10 @@ def test_the_record_is_numpys_sums(cells):
         assert np.allclose(rec[name], content[:, m].sum(axis=1), rtol=1e-12)
     plain = MemberSums(grid, E, {}).record(fq, 0.5)  # no region, no sets
     assert set(plain) == {"mass", "negative_cells"} and np.array_equal(plain["mass"], rec["mass"])
+
+
+def test_scalars_are_read_together_as_they_are():
+    a, b, c = ti.field(ti.f64, shape=()), ti.field(ti.f32, shape=()), ti.field(ti.i64, shape=())
+    a[None], b[None], c[None] = 1 / 3, 0.1, 2**52 + 1
+    values = Scalars([a, b, c]).read()
+    assert values[0] == a[None] and values[1] == b[None] and values[2] == 2**52 + 1  # exact

@@ -9,6 +9,7 @@ import taichi as ti
 from .. import pools
 from ..methods.fv import SPDESolver
 from ..methods.particles import Walker
+from ..methods.records import Scalars
 from ..methods.solver import RegionSolver
 from . import clustering
 from .ghosts import Sampler
@@ -97,6 +98,8 @@ class HybridSolver(RegionSolver):
         spde.replaced_in(self.regions.covered)  # covered cells take their counts at each sync (step 4)
         self.sampler = Sampler(spde, self.regions, self.walker, ghost_profile, substeps)
         self.coupling = Coupling(spde, self.regions, self.sampler, self.walker)
+        c = self.coupling
+        self.scalars = Scalars([c.wall_inflow, c.p_inflow, c.clamped])  # the coupling's diagnostics, read together
         self.pool = pools.make(pool_layout, grid, self.ensemble, self.real)  # flat or pointer (pools.LAYOUTS)
         self.cur = 0  # the pool buffer holding the particles between steps
         self.regridder = Regridder(self, params, regrid_interval)  # the schedule, the regrids, their log
@@ -236,10 +239,10 @@ class HybridSolver(RegionSolver):
         """The SPDE's diagnostics of the last step, with the particles' inflow at walls and
         reservoirs, clamped steps, the particle count and the last regrid's change of the total."""
         d = self.spde.diagnostics()
-        c = self.coupling
         if self.n_cover:  # otherwise the last step was a plain SPDE step
-            d["boundary_inflow"] = d["boundary_inflow"] + c.wall_inflow[None] + c.p_inflow[None]
-            d["clamped_steps"] = int(c.clamped[None])
+            wall, injected, clamped = self.scalars.read()  # one read, not three
+            d["boundary_inflow"] = d["boundary_inflow"] + float(wall) + int(injected)
+            d["clamped_steps"] = int(clamped)
         d["particles"] = pools.total(self.pool.kept)
         d["regrid_change"] = self.regridder.change
         return d

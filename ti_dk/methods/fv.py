@@ -9,6 +9,7 @@ from ..core import rng
 from ..core.grid import DIRICHLET, NEUMANN, PERIODIC, Grid, across, numpy_dtype, row_spread
 from .fluxes import Faces, drift_coefficients
 from .passes import Passes
+from .records import Scalars
 from .solver import Solver
 
 
@@ -98,6 +99,7 @@ class SPDESolver(Solver):
         self.q_min = ti.field(real, shape=())  # smallest q over members and cells [particles / volume]
         self.n_negative = ti.field(ti.i64, shape=())  # cells (over all members) with q < 0
         self.inflow = ti.field(ti.f64, shape=())  # particles entering through Dirichlet sides this step
+        self.scalars = Scalars([self.mass, self.q_min, self.n_negative, self.inflow])  # the four, read together
         self.drifting = grid.potential is not None  # an external potential's drift is compiled in
         if self.drifting:  # Scharfetter–Gummel weights (c_L, c_R) per axis of each face, shared by all members
             self.coef = ti.Vector.field(2 * self.dim, real, shape=(1, *faces))
@@ -114,13 +116,11 @@ class SPDESolver(Solver):
             self.qbar.from_numpy(np.ascontiguousarray(q0[:1], dtype=numpy_dtype(self.real)))
 
     def replaced_in(self, mask) -> None:
-        """Declare that after every step the caller overwrites q wherever the u8 field ``mask`` (shaped
-        like q) is 1, from something else (the hybrid's covered cells take their particle counts,
-        eq. 12): the step then leaves such a cell as it was and skips what only those cells read, the
-        fluxes (and their normals) of a group of ``G`` cells whose lower faces all have such cells on
-        both sides. Every other cell's q and every other face's flux keep their bits (each face's
-        noise is keyed on the face); q̄ may round differently in the last bit (fast math compiles the
-        kernel anew). Call before the first step (the kernels compile the choice in)."""
+        """Declare that after every step the caller overwrites q where the u8 field ``mask`` (like q) is 1
+        (the hybrid's covered cells take their counts, eq. 12): the step leaves such cells as they were
+        and skips the fluxes (and normals) of a group of ``G`` cells whose lower faces all have such
+        cells on both sides. Every other q and flux keeps its bits (noise is keyed per face); q̄ may
+        round differently in the last bit. Call before the first step (the kernels compile it in)."""
         self.replaced = mask
 
     @property
@@ -156,8 +156,9 @@ class SPDESolver(Solver):
 
     def diagnostics(self) -> dict[str, float]:
         """After the last step: mass, the smallest density, negative cells, the Dirichlet inflow."""
-        return {"mass": self.mass[None], "min_density": float(self.q_min[None]),
-                "negative_cells": int(self.n_negative[None]), "boundary_inflow": self.inflow[None], "clamped_steps": 0}
+        mass, q_min, negative, inflow = map(float, self.scalars.read())  # one read, not four
+        return {"mass": mass, "min_density": q_min, "negative_cells": int(negative), "boundary_inflow": inflow,
+                "clamped_steps": 0}
 
     # -- kernels ------------------------------------------------------------------------
     @ti.kernel

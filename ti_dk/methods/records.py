@@ -1,6 +1,7 @@
-"""A run's per-member record, summed on the device: each member's particles, negative cells, the
-particles and cells of its particle region, and the particles in each named set of cells, read
-back as one small array (``ensemble × (4 + sets)`` numbers) instead of the whole density."""
+"""What a run reads back, made small on the device: a per-member record (each member's particles,
+negative cells, the particles and cells of its particle region, and the particles in each named set
+of cells: ``ensemble × (4 + sets)`` numbers instead of the whole density), and a solver's scalar
+diagnostics in one read."""
 
 import numpy as np
 import taichi as ti
@@ -90,3 +91,23 @@ class MemberSums:
                 for i in range(n[0]):
                     total += self.rows[e, i, c]
                 self.out[e, c] = total
+
+
+@ti.data_oriented
+class Scalars:
+    """0-d fields read back together: one kernel copies them (as f64: exact for the counts, below
+    2^53) into one small array, read once, instead of one sync and one launch per field."""
+
+    def __init__(self, fields: list):
+        self.fields, self.count = fields, len(fields)
+        self.out = ti.field(ti.f64, shape=self.count)  # the fields' values, in order
+
+    def read(self) -> np.ndarray:
+        """The fields' values now, in order (float64)."""
+        self._pack()
+        return self.out.to_numpy()
+
+    @ti.kernel
+    def _pack(self):
+        for i in ti.static(range(self.count)):
+            self.out[i] = ti.cast(self.fields[i][None], ti.f64)
