@@ -98,6 +98,17 @@ def row_spread(rows: int) -> int:
 
 
 @ti.func
+def row_cell(i, R, d: ti.template()):
+    """Cell ``(i, *R)`` of a ``d``-dimensional grid (``d`` ≥ 2): cell ``R`` of row ``i``, for sums made
+    row by row, each row in order, which are the same bits on any thread count."""
+    C = ti.Vector.zero(ti.i32, d)
+    C[0] = i
+    for a in ti.static(range(d - 1)):
+        C[a + 1] = R[a]
+    return C
+
+
+@ti.func
 def cell_of(x, h, n):
     """Index of the cell of width ``h`` holding coordinate ``x``, clamped into ``[0, n)``."""
     return ti.min(ti.max(ti.cast(ti.floor(x / h), ti.i32), 0), n - 1)

@@ -5,7 +5,7 @@ reads back two numbers instead of the grid's density."""
 import numpy as np
 import taichi as ti
 
-from ..core.grid import PERIODIC
+from ..core.grid import PERIODIC, row_cell
 
 
 @ti.data_oriented
@@ -83,11 +83,7 @@ class Tally:
                 need, gained = self._cell(spde, e, ti.Vector([i]))
             else:
                 for R in ti.grouped(ti.ndrange(*n[1:])):
-                    C = ti.Vector.zero(ti.i32, d)
-                    C[0] = i
-                    for k in ti.static(range(d - 1)):
-                        C[k + 1] = R[k]
-                    a, b = self._cell(spde, e, C)
+                    a, b = self._cell(spde, e, row_cell(i, R, d))
                     need += a
                     gained += b
             self.rows[e, i, 0] = need

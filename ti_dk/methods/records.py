@@ -6,7 +6,7 @@ diagnostics in one read."""
 import numpy as np
 import taichi as ti
 
-from ..core.grid import Grid
+from ..core.grid import Grid, row_cell
 
 RECORD = ("mass", "negative_cells", "particles", "region_cells")  # the fixed columns, then one per set
 
@@ -80,11 +80,7 @@ class MemberSums:
                 self._add(field, scale, region, has_region, e, i, ti.Vector([i]))
             else:
                 for R in ti.grouped(ti.ndrange(*n[1:])):
-                    C = ti.Vector.zero(ti.i32, d)
-                    C[0] = i
-                    for a in ti.static(range(d - 1)):
-                        C[a + 1] = R[a]
-                    self._add(field, scale, region, has_region, e, i, C)
+                    self._add(field, scale, region, has_region, e, i, row_cell(i, R, d))
         for e in range(self.ensemble):
             for c in ti.static(range(k)):
                 total = 0.0
