@@ -97,6 +97,12 @@ def row_spread(rows: int) -> int:
     return -(-512 * cfg.cpu_max_num_threads // max(rows, 1))
 
 
+def row_count(cells: tuple[int, ...]) -> int:
+    """The rows of a fixed-order row sum (:func:`row_cell`): the cells along the first axis; in 1D one
+    row of all the cells (a member's cells are then summed in order by one thread)."""
+    return cells[0] if len(cells) > 1 else 1
+
+
 @ti.func
 def row_cell(i, R, d: ti.template()):
     """Cell ``(i, *R)`` of a ``d``-dimensional grid (``d`` ≥ 2): cell ``R`` of row ``i``, for sums made

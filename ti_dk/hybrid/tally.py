@@ -5,7 +5,7 @@ reads back two numbers instead of the grid's density."""
 import numpy as np
 import taichi as ti
 
-from ..core.grid import PERIODIC, row_cell
+from ..core.grid import PERIODIC, row_cell, row_count
 
 
 @ti.data_oriented
@@ -23,7 +23,7 @@ class Tally:
         self.region, self.grid = region, region.grid
         E, n = region.ensemble, region.n
         self.target = ti.field(ti.u8, shape=(E, *n))  # 1 where the cell is in the region a regrid moves to
-        self.rows = ti.field(ti.f64, shape=(E, n[0], 2))  # per row (member, first index): slots asked, content covered anew
+        self.rows = ti.field(ti.f64, shape=(E, row_count(n), 2))  # per row (core.grid.row_count): slots asked, content covered anew
         self.out = ti.field(ti.f64, shape=2)  # the most slots a member asks, the content covered anew (all members) [particles]
 
     def aim(self, masks: np.ndarray) -> None:
@@ -76,11 +76,14 @@ class Tally:
     @ti.kernel
     def _sum(self, spde: ti.template()):
         """:attr:`rows`, then :attr:`out` from them, in a fixed order."""
-        n, d = ti.static(self.region.n, self.grid.dim)
-        for e, i in ti.ndrange(self.target.shape[0], n[0]):  # rows in parallel; each row's cells in order
+        n, d, rows = ti.static(self.region.n, self.grid.dim, self.rows.shape[1])
+        for e, i in ti.ndrange(self.target.shape[0], rows):  # rows in parallel; each row's cells in order
             need, gained = 0.0, 0.0
             if ti.static(d == 1):
-                need, gained = self._cell(spde, e, ti.Vector([i]))
+                for j in range(n[0]):
+                    a, b = self._cell(spde, e, ti.Vector([j]))
+                    need += a
+                    gained += b
             else:
                 for R in ti.grouped(ti.ndrange(*n[1:])):
                     a, b = self._cell(spde, e, row_cell(i, R, d))
@@ -93,7 +96,7 @@ class Tally:
             most, removed = 0.0, 0.0
             for e in range(self.target.shape[0]):
                 total = 0.0
-                for i in range(n[0]):
+                for i in range(rows):
                     total += self.rows[e, i, 0]
                     removed += self.rows[e, i, 1]
                 most = ti.max(most, total)

@@ -6,7 +6,7 @@ diagnostics in one read."""
 import numpy as np
 import taichi as ti
 
-from ..core.grid import Grid, row_cell
+from ..core.grid import Grid, row_cell, row_count
 
 RECORD = ("mass", "negative_cells", "particles", "region_cells")  # the fixed columns, then one per set
 
@@ -15,8 +15,8 @@ RECORD = ("mass", "negative_cells", "particles", "region_cells")  # the fixed co
 class MemberSums:
     """Per-member sums over a solver's content field (:meth:`Solver.content`).
 
-    Row by row (a row: a member and a first index), each row's cells in order, then each member's
-    rows in order, so that the sums are the same bits on any thread count.
+    Row by row (a row: a member and a first index; in 1D a member), each row's cells in order, then
+    each member's rows in order, so that the sums are the same bits on any thread count.
     """
 
     def __init__(self, grid: Grid, ensemble: int, sets: dict[str, np.ndarray]):
@@ -26,7 +26,7 @@ class MemberSums:
         self.sets = ti.field(ti.u8, shape=(max(len(sets), 1), *n))  # 1 where the cell is in set s (by name)
         if sets:
             self.sets.from_numpy(np.stack(list(sets.values())).astype(np.uint8))
-        self.rows = ti.field(ti.f64, shape=(ensemble, n[0], k))  # per row: its part of each column
+        self.rows = ti.field(ti.f64, shape=(ensemble, row_count(n), k))  # per row (core.grid.row_count): its part of each column
         self.out = ti.field(ti.f64, shape=(ensemble, k))  # per member: each column [particles or cells]
 
     def record(self, field, scale: float, region=None) -> dict[str, np.ndarray]:
@@ -72,19 +72,20 @@ class MemberSums:
 
     @ti.kernel
     def _sum(self, field: ti.template(), scale: ti.f64, region: ti.template(), has_region: ti.template()):
-        n, d, k = ti.static(self.grid.cells, self.grid.dim, self.rows.shape[2])
-        for e, i in ti.ndrange(self.ensemble, n[0]):
+        n, d, rows, k = ti.static(self.grid.cells, self.grid.dim, self.rows.shape[1], self.rows.shape[2])
+        for e, i in ti.ndrange(self.ensemble, rows):
             for c in ti.static(range(k)):
                 self.rows[e, i, c] = 0.0
             if ti.static(d == 1):
-                self._add(field, scale, region, has_region, e, i, ti.Vector([i]))
+                for j in range(n[0]):
+                    self._add(field, scale, region, has_region, e, i, ti.Vector([j]))
             else:
                 for R in ti.grouped(ti.ndrange(*n[1:])):
                     self._add(field, scale, region, has_region, e, i, row_cell(i, R, d))
         for e in range(self.ensemble):
             for c in ti.static(range(k)):
                 total = 0.0
-                for i in range(n[0]):
+                for i in range(rows):
                     total += self.rows[e, i, c]
                 self.out[e, c] = total
 
