@@ -97,6 +97,19 @@ def row_spread(rows: int) -> int:
     return -(-512 * cfg.cpu_max_num_threads // max(rows, 1))
 
 
+@ti.func
+def wrap(grid: ti.template(), D):
+    """Cell ``D`` (no member index; at most one grid length outside it) taken across periodic
+    sides, and whether it is a grid cell: the cells near a cell, in Chebyshev distance, as the
+    region's rules see them (a Neumann or Dirichlet side has nothing beyond it)."""
+    ok = True
+    for a in ti.static(range(grid.dim)):
+        if ti.static(grid.boundary[a][0] == PERIODIC):
+            D[a] = (D[a] + grid.cells[a]) % grid.cells[a]
+        ok = ok and 0 <= D[a] < grid.cells[a]
+    return D, ok
+
+
 def row_count(cells: tuple[int, ...]) -> int:
     """The rows of a fixed-order row sum (:func:`row_cell`): the cells along the first axis; in 1D one
     row of all the cells (a member's cells are then summed in order by one thread)."""

@@ -13,7 +13,7 @@ import numpy as np
 import taichi as ti
 
 from . import clustering, tiles
-from ..core.grid import DIRICHLET, PERIODIC, Grid
+from ..core.grid import DIRICHLET, PERIODIC, Grid, wrap
 
 
 def _joined(first: np.ndarray, second: np.ndarray) -> np.ndarray:
@@ -243,11 +243,7 @@ class Region:
             for a in ti.static(range(self.dim)):
                 moved = moved or off[a] != 0
             if moved:
-                D, ok = C + off, True
-                for a in ti.static(range(self.dim)):
-                    if ti.static(self.grid.boundary[a][0] == PERIODIC):
-                        D[a] = (D[a] + self.n[a]) % self.n[a]
-                    ok = ok and 0 <= D[a] < self.n[a]
+                D, ok = wrap(self.grid, C + off)
                 if ok:
                     if self.covered[self.member(e, D)] != 0:
                         total += 1

@@ -5,7 +5,7 @@ reads back two numbers instead of the grid's density."""
 import numpy as np
 import taichi as ti
 
-from ..core.grid import PERIODIC, row_cell, row_count
+from ..core.grid import row_cell, row_count, wrap
 
 
 @ti.data_oriented
@@ -49,11 +49,7 @@ class Tally:
         r = self.region
         near = r.covered[r.member(e, C)] != 0
         for I in ti.grouped(ti.ndrange(*([3] * self.grid.dim))):
-            D, ok = C + I - 1, True
-            for a in ti.static(range(self.grid.dim)):
-                if ti.static(self.grid.boundary[a][0] == PERIODIC):
-                    D[a] = (D[a] + r.n[a]) % r.n[a]
-                ok = ok and 0 <= D[a] < r.n[a]
+            D, ok = wrap(self.grid, C + I - 1)
             if ok:
                 near = near or self.target[r.member(e, D)] != 0
         return near

@@ -19,7 +19,7 @@ from collections.abc import Sequence
 import numpy as np
 import taichi as ti
 
-from ..core.grid import PERIODIC, Grid
+from ..core.grid import Grid, wrap
 from .clustering import Box
 DEFAULT_SIDE = {1: 1, 2: 4, 3: 4}  # tile side in cells where ``tile = 0``, by dimension (1D: the tags exactly)
 
@@ -90,11 +90,7 @@ class Tiles:
                         tagged += 1
                     least, own = ti.math.inf, ti.math.inf  # the least content within the buffer (q̄'s, the member's)
                     for O in ti.grouped(ti.ndrange(*([2 * b + 1] * self.dim))):
-                        D, ok = C + O - b, True
-                        for a in ti.static(range(self.dim)):
-                            if ti.static(self.grid.boundary[a][0] == PERIODIC):
-                                D[a] = (D[a] + self.n[a]) % self.n[a]
-                            ok = ok and 0 <= D[a] < self.n[a]
+                        D, ok = wrap(self.grid, C + O - b)
                         if ok:
                             least = ti.min(least, self._content(spde, region, K[0], D, mean))
                             if ti.static(mean):
