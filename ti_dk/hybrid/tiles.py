@@ -77,27 +77,28 @@ class Tiles:
         tagged = 0
         self.changed[None] = 0
         for K in ti.grouped(self.flags):
-            old, whole, low, stay = False, True, False, False
-            for I in ti.grouped(ti.ndrange(*([side] * self.dim))):
-                C = ti.Vector([K[a + 1] * side + I[a] for a in ti.static(range(self.dim))])
-                inside = True
-                for a in ti.static(range(self.dim)):
-                    inside = inside and C[a] < self.n[a]
-                if inside:
+            lo = ti.Vector([K[a + 1] * side for a in ti.static(range(self.dim))])  # the tile's first cell
+            end = ti.Vector([ti.min(lo[a] + side, self.n[a]) for a in ti.static(range(self.dim))])  # past its last
+            old, whole = False, True
+            for I in ti.grouped(ti.ndrange(*([side] * self.dim))):  # the tile's cells
+                C = lo + I
+                if (C < end).all():
                     now = region.covered[region.member(K[0], C)] != 0
                     old, whole = old or now, whole and now
                     if self._content(spde, region, K[0], C, mean) < threshold:
                         tagged += 1
-                    least, own = ti.math.inf, ti.math.inf  # the least content within the buffer (q̄'s, the member's)
-                    for O in ti.grouped(ti.ndrange(*([2 * b + 1] * self.dim))):
-                        D, ok = wrap(self.grid, C + O - b)
-                        if ok:
-                            least = ti.min(least, self._content(spde, region, K[0], D, mean))
-                            if ti.static(mean):
-                                own = ti.min(own, self._content(spde, region, K[0], D, False))
-                    low = low or least < threshold or own < guard
-                    stay = stay or least < keep
-            flag = low or (old and stay)
+            # the least content within the buffer of any of its cells (q̄'s, the member's): the least
+            # over the tile grown by the buffer, (side + 2b)^d cells, not side^d · (2b + 1)^d
+            least, own = ti.math.inf, ti.math.inf
+            for I in ti.grouped(ti.ndrange(*([side + 2 * b] * self.dim))):
+                C = lo + I - b
+                if (C < end + b).all():
+                    D, ok = wrap(self.grid, C)
+                    if ok:
+                        least = ti.min(least, self._content(spde, region, K[0], D, mean))
+                        if ti.static(mean):
+                            own = ti.min(own, self._content(spde, region, K[0], D, False))
+            flag = least < threshold or own < guard or (old and least < keep)
             self.flags[K] = ti.u8(flag)
             if (flag and not whole) or (not flag and old):
                 self.changed[None] += 1
