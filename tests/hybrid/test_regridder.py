@@ -16,6 +16,12 @@ def _solver(scene):
     return make_solver(scene, scene.initial_ppc)
 
 
+def _low(s, trigger):
+    """The uncovered cells of hybrid ``s`` holding fewer than ``trigger`` particles (Region.count_low)."""
+    s.regions.count_low(s.spde, trigger, False)
+    return s.regions.low[None]
+
+
 @pytest.mark.parametrize("cells", [[30, 26], [10, 12, 8]])
 def test_scheduled_regrid_sorts_the_particles_by_cell(cells):
     # a scheduled regrid of boxes leaves each member's particles of a flat pool in cell order (Coupling.sort),
@@ -122,7 +128,7 @@ def test_regrid_on_demand():
     assert len(demand) > 3 and (s.region() & ~start).sum() > 20
     # an extension, where one is due, leaves no uncovered cell below the threshold (with tiles, which
     # cover whole tiles around the low cells, none was due at step 60 of this run)
-    if s.regions.count_low(s.spde, 4.0, False) > 0:
+    if _low(s, 4.0) > 0:
         s.extend(60)
     q = s.density() * vol
     assert q[~s.region()].min() >= 4.0
@@ -132,7 +138,7 @@ def test_regrid_on_demand():
     for n in range(60):
         half.step(n)
     assert 0 < sum(r["on_demand"] > 0 for r in half.regrids) < len(demand)
-    if half.regions.count_low(half.spde, 2.0, False):  # due before step 60
+    if _low(half, 2.0):  # due before step 60
         half.extend(60)
     q = half.density() * vol
     assert q[~half.region()].min() >= 2.0
@@ -141,7 +147,7 @@ def test_regrid_on_demand():
     for n in range(60):
         least.step(n)
     assert sum(r["on_demand"] > 0 for r in least.regrids) > 0
-    if least.regions.count_low(least.spde, 2.0, False):
+    if _low(least, 2.0):
         least.extend(60)
     q = least.density() * vol
     assert q[~least.region()].min() >= 2.0 and q[~least.region()].min() < 4.0
@@ -150,7 +156,8 @@ def test_regrid_on_demand():
 
 @pytest.mark.parametrize("region_from", ["mean", "member"])
 def test_a_step_reads_back_a_few_counts(region_from):
-    # every host touch of the device counted (core.traffic): a step without a regrid reads a few counts
+    # every host touch of the device counted (core.traffic): a step without a regrid reads the fill's
+    # slot count, and the end-of-step low-cell count only where an extension can be (regrid_floor > 0),
     # and writes nothing; a regrid reads two counts, and where the region changed the tile flags and the
     # move's two sums (Tally), never the density; over the run, at most 64 bytes a step on average
     scene = load_scene("ellipse2d", cells=[48, 48], compare="none", seed=4, region_from=region_from,
@@ -166,6 +173,6 @@ def test_a_step_reads_back_a_few_counts(region_from):
             rows.append((len(s.regrids) > before, t.read, t.written))
     regrid, read, written = np.array(rows).T
     assert regrid.sum() > 10 and len({r["covered_cells"] for r in s.regrids}) >= 3  # the region moved
-    assert read[regrid == 0].max() <= 16 and written[regrid == 0].max() == 0
+    assert read[regrid == 0].max() == (16 if region_from == "member" else 8) and written[regrid == 0].max() == 0
     assert read.max() <= np.prod(tiles) + 64 < 8 * 48 * 48  # the flags at most: no grid-sized read
     assert read.mean() <= 64

@@ -44,6 +44,7 @@ class Region:
         self.ring_list = ti.field(ti.i32, shape=E * math.prod(self.padded))  # flat indices of ghost cells
         self.cover_list = ti.field(ti.i32, shape=E * math.prod(n))  # flat indices of covered cells
         self.leads = ti.field(ti.i8, shape=self.ring_list.shape)  # the lead face of each ring cell (lead; -1: none)
+        self.low = ti.field(ti.i32, shape=())  # uncovered cells below the extension's trigger at the last count_low
         self.n_ring, self.n_cover = 0, 0  # lengths of the two lists
         self.tile = tiles.side_for(params.tile, self.n)  # the tiles' side in cells
         self.tiles = tiles.Tiles(grid, E, self.tile, params.buffer) if params.region == "tiles" else None
@@ -208,11 +209,11 @@ class Region:
         return J, self.inside(ti.Vector([J[a + 1] for a in ti.static(range(self.dim))]))
 
     @ti.kernel
-    def count_low(self, spde: ti.template(), trigger: ti.f64, diagnosing: ti.template()) -> ti.i32:
-        """How many uncovered cells of ``spde`` hold fewer than ``trigger`` particles (content
-        ``q V_c``, or negative): an on-demand extension is due when any does (the hybrid's
-        ``extend``). With ``diagnosing`` also :meth:`SPDESolver.diagnose` in the same pass (the
-        hybrid's end of step: one pass over the grid, not two)."""
+    def count_low(self, spde: ti.template(), trigger: ti.f64, diagnosing: ti.template()):
+        """Count in :attr:`low` the uncovered cells of ``spde`` holding fewer than ``trigger`` particles
+        (content ``q V_c``, or negative): an extension is due when any does (the hybrid's ``extend``;
+        read only where one can be: a kernel's return value would sync the device every step). With
+        ``diagnosing`` also :meth:`SPDESolver.diagnose` in the same pass (one grid pass, not two)."""
         if ti.static(diagnosing):
             spde.zero_diagnostics()
         due = 0
@@ -224,7 +225,7 @@ class Region:
                 content = ti.cast(spde.q[J], ti.f64) * ti.static(self.grid.cell_volume)
             if not self.covered[J] and content < trigger:
                 due += 1
-        return due
+        self.low[None] = due
 
     @ti.func
     def lead(self, e, C):

@@ -46,7 +46,7 @@ class Regridder:
         self.change = 0.0  # created − removed at this step's regrid
         self._removed = 0.0  # SPDE content Σ q V_c of the cells the last regrid covered anew
         self._created = 0  # particles the last regrid sampled into them
-        self._low: int | None = None  # uncovered cells below params.trigger at the last count (None: not known)
+        self._counted = False  # whether Region.low holds the count of q as it is now
 
     # -- the schedule -----------------------------------------------------------------------
     def when_due(self, n: int) -> None:
@@ -59,20 +59,23 @@ class Regridder:
                 self.regrid(n)
             elif self.params.regrid_floor > 0 and self._extension_due():
                 self.extend(n)
-        self._low = None  # q changes from here
+        self._counted = False  # q changes from here
 
-    def count_low(self, diagnosing: bool = False) -> int:
-        """How many uncovered cells hold fewer than ``regrid_floor · threshold`` particles
-        (:meth:`Region.count_low`; with ``diagnosing`` the SPDE's diagnostics in the same pass),
-        kept for the next step's :meth:`when_due`."""
+    def count_low(self, diagnosing: bool = False) -> None:
+        """Count on the device the uncovered cells holding fewer than ``regrid_floor · threshold``
+        particles (:meth:`Region.count_low`; with ``diagnosing`` the SPDE's diagnostics in the same
+        pass), for the next step's :meth:`when_due`."""
         s = self.solver
-        self._low = s.regions.count_low(s.spde, self.params.trigger, diagnosing)
-        return self._low
+        s.regions.count_low(s.spde, self.params.trigger, diagnosing)
+        self._counted = True
 
     def _extension_due(self) -> bool:
         """Whether an uncovered cell holds fewer than ``regrid_floor · threshold`` particles (counted
-        at the end of the last step, or now where that step was a plain SPDE step or a state was loaded)."""
-        return (self.count_low() if self._low is None else self._low) > 0
+        at the end of the last step, or now where that step was a plain SPDE step or a state was
+        loaded): the one read of the count, made only where an extension can be."""
+        if not self._counted:
+            self.count_low()
+        return self.solver.regions.low[None] > 0
 
     # -- the new region ---------------------------------------------------------------------
     def regrid(self, n: int) -> None:
@@ -228,4 +231,4 @@ class Regridder:
     def load_state(self, st: dict[str, np.ndarray]) -> None:
         """The log from :meth:`state`'s arrays; the low cells are counted again when next asked."""
         self.log = [{k: st[f"regrid_{k}"][i].item() for k in REGRID_LOG} for i in range(len(st["regrid_step"]))]
-        self._low = None
+        self._counted = False
