@@ -95,8 +95,6 @@ def plot(path: Path, rows: list[dict], title: str, ylabel: str, target: float | 
     ax.scatter(cost[~front], err[~front, 0], c="0.45", s=25, zorder=3, label="dominated")
     order = np.argsort(cost[front])
     ax.plot(cost[front][order], err[front][order, 0], "o-", c="C3", zorder=4, label="Pareto front")
-    for r, c, e in zip(rows, cost, err[:, 0]):
-        ax.annotate(r["label"], (c, e), fontsize=7, xytext=(4, 3), textcoords="offset points")
     if target is not None:
         ax.axhline(target, color="k", lw=0.9, ls="--", label=f"target {target:g}")
     if pick is not None:
@@ -110,8 +108,26 @@ def plot(path: Path, rows: list[dict], title: str, ylabel: str, target: float | 
     ax.grid(alpha=0.3, which="both")
     ax.legend(fontsize=8, loc="best")
     fig.tight_layout()
+    _labels(fig, ax, [r["label"] for r in rows], cost, err[:, 0])
     fig.savefig(path, dpi=110)
     plt.close(fig)
+
+
+def _labels(fig, ax, names: list[str], x: np.ndarray, y: np.ndarray) -> None:
+    """Each point's name beside it, moved up a line at a time until it overlaps no name placed
+    before it (settings of about the same cost and error would otherwise print over each other)."""
+    fig.canvas.draw()
+    renderer = fig.canvas.get_renderer()
+    placed = []
+    for i in np.lexsort((x, y)):
+        text = ax.annotate(names[i], (x[i], y[i]), fontsize=7, xytext=(4, 3), textcoords="offset points")
+        box = text.get_window_extent(renderer)
+        for lift in range(1, 12):
+            if not any(box.overlaps(b) for b in placed):
+                break
+            text.xyann = (4, 3 + 8 * lift)
+            box = text.get_window_extent(renderer)
+        placed.append(box)
 
 
 def scene_toml(scene, comment: str) -> str:
