@@ -71,8 +71,9 @@ def test_the_blob_core_is_left_to_the_spde_from_the_start():
     tagged = clustering.tag(content, 5.0)
     core = ~clustering.grow(tagged, 1, (False, False))  # at or above the threshold beyond the buffer
     assert np.all(region[tagged])  # every tagged cell is covered, and exactly the tiles that hold one
-    assert np.array_equal(region, tiles.spread(_tiles_any(~core[None], 4), 4, (48, 48))[0])
-    assert (~region).sum() == 12 * 16  # the core: 12 tiles of 4 × 4 cells (as on 96 × 96 at σ = 0.05)
+    side = tiles.side_for(0, (48, 48))  # the default: 2
+    assert np.array_equal(region, tiles.spread(_tiles_any(~core[None], side), side, (48, 48))[0])
+    assert (~region).sum() == 52 * 4  # the core: 52 tiles of 2 × 2 cells (as on 96 × 96 at σ = 0.05)
     boxes = make_solver(_blob(48, region="boxes"), scene.initial_ppc)
     assert boxes.region().all()
 
@@ -122,7 +123,8 @@ def test_hysteresis_keeps_the_region_from_flickering():
     left = {}
     for release in (1.0, 1.5):
         scene = load_scene("equilibrium1d", method="hybrid", cells=[32, 32], ppc=9, threshold=5, regrid_interval=1,
-                           region_from="member", release=release, t_equil=None, histogram=None, seed=3, ensemble=1)
+                           region_from="member", release=release, t_equil=None, histogram=None, seed=3, ensemble=1,
+                           tile=4)
         s = make_solver(scene, scene.initial_ppc)
         left[release] = 0
         for n in range(30):

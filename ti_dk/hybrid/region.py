@@ -46,7 +46,7 @@ class Region:
         self.leads = ti.field(ti.i8, shape=self.ring_list.shape)  # the lead face of each ring cell (lead; -1: none)
         self.low = ti.field(ti.i32, shape=())  # uncovered cells below the extension's trigger at the last count_low
         self.n_ring, self.n_cover = 0, 0  # lengths of the two lists
-        self.tile = tiles.side_for(params.tile, self.n)  # the tiles' side in cells
+        self.tile = tiles.side_for(params.tile, self.n, params.region_from)  # the tiles' side in cells
         self.tiles = tiles.Tiles(grid, E, self.tile, params.buffer) if params.region == "tiles" else None
         self._boxes: list[list[clustering.Box]] = [[] for _ in range(E)]  # boxes: each member's region
         self._mask = np.zeros((E, *n), dtype=bool)  # the host's copy of `covered` (read at every regrid)

@@ -3,8 +3,9 @@
 The grid is cut into tiles of ``tile`` cells a side (the last tile along an axis may be cut short
 by the grid). One kernel flags every tile of every member from the tag rule of
 :func:`clustering.tag` grown by ``buffer`` (:meth:`Tiles.flag`), and the host reads back only the
-flags, ``ensemble × tiles`` bytes. Every tile that holds a tag is covered whole, as SAMRAI's
-``TileClustering`` and Uintah's ``TiledRegridder`` make every tile with a tag a box; unlike
+flags, a bit a tile (``ensemble × ⌈tiles / 32⌉`` words), and only where a member's region
+changed. Every tile that holds a tag is covered whole, as SAMRAI's ``TileClustering`` and
+Uintah's ``TiledRegridder`` make every tile with a tag a box; unlike
 Berger–Rigoutsos (:func:`clustering.cluster`, ``region = "boxes"``, the paper's), the region then
 follows the tags to within a tile, whatever the box-cutting settings.
 
@@ -21,13 +22,18 @@ import taichi as ti
 
 from ..core.grid import Grid, wrap
 from .clustering import Box
-DEFAULT_SIDE = {1: 1, 2: 4, 3: 4}  # tile side in cells where ``tile = 0``, by dimension (1D: the tags exactly)
+# tile side in cells where ``tile = 0``, by dimension (1D: the tags exactly), for a region from q̄ and
+# from each member's own density. From q̄, 2: the region holds 20 % (2D) to 60 % (3D, 300 per cell)
+# fewer particles than with 4, as the tiles at its edge reach less far into the dense side. Each
+# member's own, 4: its extensions come less often (sphere3d 128³: regrids 71 s with 4, 293 s with 2).
+# Measured side by side: benchmarks/tile_side.py, benchmarks/RESULTS.md.
+DEFAULT_SIDE = {"mean": {1: 1, 2: 2, 3: 2}, "member": {1: 1, 2: 4, 3: 4}}
 
 
-def side_for(tile: int, cells: tuple[int, ...]) -> int:
-    """The tile side in cells: ``tile``, or (0) the default of the grid's dimension, at most the
-    grid's largest side."""
-    return min(tile or DEFAULT_SIDE[len(cells)], max(cells))
+def side_for(tile: int, cells: tuple[int, ...], region_from: str = "mean") -> int:
+    """The tile side in cells: ``tile``, or (0) the default of the grid's dimension and the region's
+    source (``region_from``), at most the grid's largest side."""
+    return min(tile or DEFAULT_SIDE[region_from][len(cells)], max(cells))
 
 
 @ti.data_oriented
@@ -39,11 +45,17 @@ class Tiles:
         self.dim, self.n = grid.dim, grid.cells
         self.shape = tuple(-(-m // side) for m in self.n)  # tiles per axis
         self.flags = ti.field(ti.u8, shape=(ensemble, *self.shape))  # 1: the tile is in the particle region
+        self.count = math.prod(self.shape)  # tiles per member
+        # the flags again, 32 to a word (tile t of a member: bit t % 32 of word t // 32): what the host reads
+        self.packed = ti.field(ti.u32, shape=(ensemble, -(-self.count // 32)))
         self.changed = ti.field(ti.i32, shape=())  # tiles whose cover the last flag changed, all members
 
     def mask(self) -> np.ndarray:
-        """The region the flags give, ``(ensemble, *cells)`` booleans (one small read: the flags)."""
-        return spread(self.flags.to_numpy().astype(bool), self.side, self.n)
+        """The region the flags give, ``(ensemble, *cells)`` booleans (one small read: the packed
+        flags, a bit a tile)."""
+        words = np.ascontiguousarray(self.packed.to_numpy().astype("<u4"))
+        bits = np.unpackbits(words.view(np.uint8), axis=1, bitorder="little")[:, :self.count]
+        return spread(bits.reshape(self.ensemble, *self.shape).astype(bool), self.side, self.n)
 
     @ti.func
     def _content(self, spde: ti.template(), region: ti.template(), e, C, mean: ti.template()) -> ti.f64:
@@ -76,6 +88,8 @@ class Tiles:
         side, b = ti.static(self.side, self.buffer)
         tagged = 0
         self.changed[None] = 0
+        for W in ti.grouped(self.packed):
+            self.packed[W] = ti.u32(0)
         for K in ti.grouped(self.flags):
             lo = ti.Vector([K[a + 1] * side for a in ti.static(range(self.dim))])  # the tile's first cell
             end = ti.Vector([ti.min(lo[a] + side, self.n[a]) for a in ti.static(range(self.dim))])  # past its last
@@ -100,6 +114,11 @@ class Tiles:
                             own = ti.min(own, self._content(spde, region, K[0], D, False))
             flag = least < threshold or own < guard or (old and least < keep)
             self.flags[K] = ti.u8(flag)
+            if flag:
+                t = 0  # the tile's flat index in its member
+                for a in ti.static(range(self.dim)):
+                    t = t * self.shape[a] + K[a + 1]
+                ti.atomic_or(self.packed[K[0], t // 32], ti.u32(1) << ti.u32(t % 32))
             if (flag and not whole) or (not flag and old):
                 self.changed[None] += 1
         return tagged
