@@ -271,3 +271,22 @@ def test_a_checkpoint_of_one_layout_restarts_with_the_other(tmp_path):
                   restart=tmp_path / "first" / "void1d_hybrid_checkpoint.h5")
     assert np.array_equal(whole.final_density, resumed.final_density)
     assert np.array_equal(whole.stats.mean, resumed.stats.mean, equal_nan=True)
+
+
+def test_an_untimed_step_does_not_wait_for_the_device():
+    # the step's stopwatch syncs the device four times; on a GPU only every 16th step is timed (its
+    # time counted 16 times), so the others launch ahead: here every 4th, on the CPU
+    from ti_dk.core.traffic import counted
+
+    scene = load_scene("void1d", method="hybrid", cells=[40], ensemble=2, t_end=1e-4, seed=2)
+    s = _solver(scene)
+    assert s.timed_every == 1  # the CPU: every step timed
+    s.timed_every = 4
+    syncs = []
+    with counted() as t:
+        for n in range(8):
+            t.reset()
+            s.step(n)
+            syncs.append(t.syncs)
+    assert syncs[0] - syncs[1] == 5 and syncs[4] - syncs[1] == 5 and len(set(syncs[1:4] + syncs[5:])) == 1
+    assert s.timing["spde"] > 0 and s.timing["particles"] > 0
