@@ -55,13 +55,32 @@ class Tally:
         return near
 
     @ti.func
-    def _cell(self, spde: ti.template(), e, C):
-        """Cell ``C`` of member ``e``: the slots it may ask for, and its content if the move covers it anew."""
+    def _column(self, e, C, k) -> bool:
+        """Whether a target cell lies within distance 1 of ``C`` along every axis but the last, at
+        position ``k`` of the last axis (across periodic sides; none beyond another side). A row's
+        cells read three of these, each made once for the row: 3^(d−1) lookups a cell, not 3^d."""
+        d = ti.static(self.grid.dim)
+        D = C
+        D[d - 1] = k
+        hit = False
+        for I in ti.grouped(ti.ndrange(*([3] * (d - 1) or [1]))):
+            if ti.static(d > 1):
+                for a in ti.static(range(d - 1)):
+                    D[a] = C[a] + I[a] - 1
+            W, ok = wrap(self.grid, D)
+            if ok:
+                hit = hit or self.target[self.region.member(e, W)] != 0
+        return hit
+
+    @ti.func
+    def _cell(self, spde: ti.template(), e, C, near):
+        """Cell ``C`` of member ``e`` (``near``: :meth:`_near`): the slots it may ask for, and its
+        content if the move covers it anew."""
         r = self.region
         J = r.member(e, C)
         content = ti.cast(spde.q[J], ti.f64) * ti.static(self.grid.cell_volume)
         need, gained = 0.0, 0.0
-        if self._near(e, C):
+        if near:
             need = ti.ceil(ti.max(content, 0.0))
         if self.target[J] != 0:
             need += ti.static(self.grid.reservoir_ppc_max * 3 ** (self.grid.dim - 1) if self.grid.has_dirichlet else 0.0)
@@ -75,16 +94,22 @@ class Tally:
         n, d, rows = ti.static(self.region.n, self.grid.dim, self.rows.shape[1])
         for e, i in ti.ndrange(self.target.shape[0], rows):  # rows in parallel; each row's cells in order
             need, gained = 0.0, 0.0
-            if ti.static(d == 1):
-                for j in range(n[0]):
-                    a, b = self._cell(spde, e, ti.Vector([j]))
-                    need += a
-                    gained += b
-            else:
-                for R in ti.grouped(ti.ndrange(*n[1:])):
-                    a, b = self._cell(spde, e, row_cell(i, R, d))
-                    need += a
-                    gained += b
+            before, here = False, False  # _column at the last axis's k − 1 and k (k + 1 made at k)
+            for R in ti.grouped(ti.ndrange(*(n[1:] if d > 1 else n))):
+                C = ti.Vector.zero(ti.i32, d)
+                if ti.static(d > 1):
+                    C = row_cell(i, R, d)
+                else:
+                    C = R
+                k = C[d - 1]
+                if k == 0:
+                    before, here = self._column(e, C, -1), self._column(e, C, 0)
+                after = self._column(e, C, k + 1)
+                near = before or here or after or self.region.covered[self.region.member(e, C)] != 0
+                a, b = self._cell(spde, e, C, near)
+                need += a
+                gained += b
+                before, here = here, after
             self.rows[e, i, 0] = need
             self.rows[e, i, 1] = gained
         ti.loop_config(serialize=True)
@@ -104,5 +129,5 @@ class Tally:
         """Each cell's slots into ``out`` (:meth:`per_cell`)."""
         for J in ti.grouped(self.target):
             C = ti.Vector([J[a + 1] for a in ti.static(range(self.grid.dim))])
-            need, _gained = self._cell(spde, J[0], C)
+            need, _gained = self._cell(spde, J[0], C, self._near(J[0], C))
             out[J] = need
