@@ -25,10 +25,13 @@ def main() -> None:
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
     ap.add_argument("--steps", type=int, default=200)
     ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--timed-every", type=int, default=None,
+                    help="time every k-th step (HybridSolver.timed_every; a GPU's is 16): the stopwatch's syncs as there")
     args = ap.parse_args()
     ti_dk.init("cpu", args.threads)
     scene = ti_dk.load_scene(args.scene, method="hybrid", **command_overrides(args.set, {}))
     solver = make_solver(scene, scene.initial_ppc)
+    solver.timed_every = args.timed_every or solver.timed_every
     rows = []
     with counted() as t:
         for n in range(min(args.steps, scene.n_steps)):
