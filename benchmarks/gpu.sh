@@ -8,7 +8,7 @@
 # reports the best of 3 blocks after a warm-up step). The NumPy row of bench_speed.py runs on the
 # CPU in any case; its "threads" column means nothing on CUDA.
 #
-# Parts run most important first (a smoke run, issue 26's hybrid_value table, then the throughput
+# Parts run most important first (a smoke run, issue 40's and 26's hybrid_value tables, then the throughput
 # benchmarks, then the whole scenes), each under `timeout $PART_S` (default 600 s), so a lease
 # shorter than the whole still brings back the tables that finished; the file is written as it goes.
 set -uo pipefail
@@ -30,6 +30,27 @@ trap 'rm -rf "$tmp"' EXIT
   part $PY -m ti_dk.scene void1d --method fv --ensemble 8 --t-end 0.0005 --no-frames --no-progress --out "$tmp"
   part $PY -m ti_dk.scene void1d --method hybrid --ensemble 8 --t-end 0.0005 --no-frames --no-progress --out "$tmp"
   echo '```'
+  echo
+  echo "## Issue 40's table on CUDA: whole runs, particle ÷ hybrid, the library's defaults (region from q̄)"
+  echo
+  Q="--set region_from=mean --set regrid_floor=0"
+  for d in 30 100 300 1000; do
+    part $PY benchmarks/hybrid_value.py ellipse2d --arch cuda --whole --particle-steps 30 $Q --set ppc_outer=$d --set ppc_inner=$((d / 2))
+    echo
+  done
+  for d in 30 100 300; do
+    part $PY benchmarks/hybrid_value.py sphere3d --arch cuda --whole --particle-steps 10 $Q --set 'cells=[64,64,64]' --set ppc_outer=$d --set ppc_inner=$((d / 2))
+    echo
+  done
+  for d in 30 300; do  # the issue's GPU case: the hybrid against the particles on sphere3d 128³
+    part $PY benchmarks/hybrid_value.py sphere3d --arch cuda --whole --particle-steps 5 $Q --set ppc_outer=$d --set ppc_inner=$((d / 2))
+    echo
+  done
+  echo "### host syncs and bytes a step (the stopwatch as on a GPU: every 16th step timed)"
+  echo
+  part $PY benchmarks/readback.py ellipse2d --arch cuda --steps 300 $Q
+  echo
+  part $PY benchmarks/readback.py sphere3d --arch cuda --steps 100 $Q --set 'cells=[64,64,64]'
   echo
   echo "## hybrid_value.py --arch cuda (issue 26: hybrid ÷ (fv + plain walk), particle ÷ hybrid)"
   echo

@@ -25,10 +25,11 @@ def main() -> None:
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
     ap.add_argument("--steps", type=int, default=200)
     ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--arch", default="cpu", choices=["cpu", "cuda"], help="Taichi backend (benchmarks/gpu.sh: cuda)")
     ap.add_argument("--timed-every", type=int, default=None,
                     help="time every k-th step (HybridSolver.timed_every; a GPU's is 16): the stopwatch's syncs as there")
     args = ap.parse_args()
-    ti_dk.init("cpu", args.threads)
+    ti_dk.init(args.arch, args.threads)
     scene = ti_dk.load_scene(args.scene, method="hybrid", **command_overrides(args.set, {}))
     solver = make_solver(scene, scene.initial_ppc)
     solver.timed_every = args.timed_every or solver.timed_every
