@@ -110,6 +110,17 @@ def wrap(grid: ti.template(), D):
     return D, ok
 
 
+@ti.func
+def prefixed(k, C, d: ti.template()):
+    """The index ``(k, *C)`` of cell ``C`` (``d`` axes) in a field whose first index is a member or a
+    set: ``k``."""
+    J = ti.Vector.zero(ti.i32, d + 1)
+    J[0] = k
+    for a in ti.static(range(d)):
+        J[a + 1] = C[a]
+    return J
+
+
 def row_count(cells: tuple[int, ...]) -> int:
     """The rows of a fixed-order row sum (:func:`row_cell`): the cells along the first axis; in 1D one
     row of all the cells (a member's cells are then summed in order by one thread)."""

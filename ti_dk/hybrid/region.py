@@ -13,7 +13,7 @@ import numpy as np
 import taichi as ti
 
 from . import clustering, tiles
-from ..core.grid import DIRICHLET, PERIODIC, Grid, wrap
+from ..core.grid import DIRICHLET, PERIODIC, Grid, prefixed, wrap
 
 
 def _joined(first: np.ndarray, second: np.ndarray) -> np.ndarray:
@@ -170,11 +170,7 @@ class Region:
     @ti.func
     def member(self, e, C):
         """The member-first index ``(e, *C)``."""
-        J = ti.Vector.zero(ti.i32, self.dim + 1)
-        J[0] = e
-        for a in ti.static(range(self.dim)):
-            J[a + 1] = C[a]
-        return J
+        return prefixed(e, C, self.dim)
 
     @ti.func
     def unflatten(self, i, shape: ti.template()):

@@ -164,7 +164,8 @@ class HybridSolver(RegionSolver):
     def step(self, n: int) -> None:
         """Advance from step ``n`` to ``n + 1`` in the paper's three stages (the class docstring's 1–4),
         the seconds of each part added to :attr:`timing`."""
-        lap = _laps(self.timing, 1 if n == 0 else self.timed_every if n % self.timed_every == 0 else 0)  # step 0 compiles
+        every = self.timed_every
+        lap = _laps(self.timing, 1 if n == 0 else every if n % every == 0 else 0)  # step 0 (it compiles) as it is
         self.regridder.when_due(n)  # stage 1: the regrid, when due
         lap("regrid")
         if self.n_cover == 0:  # no particle region: a plain SPDE step

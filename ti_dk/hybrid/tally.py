@@ -44,15 +44,10 @@ class Tally:
         return out
 
     @ti.func
-    def _near(self, e, C) -> bool:
-        """Whether cell ``C`` of member ``e`` is covered now or within distance 1 of the target."""
-        r = self.region
-        near = r.covered[r.member(e, C)] != 0
-        for I in ti.grouped(ti.ndrange(*([3] * self.grid.dim))):
-            D, ok = wrap(self.grid, C + I - 1)
-            if ok:
-                near = near or self.target[r.member(e, D)] != 0
-        return near
+    def _near(self, e, C, before, here, after) -> bool:
+        """Whether cell ``C`` of member ``e`` is covered now or within distance 1 of the target, given
+        :meth:`_column` at the last axis's ``k − 1``, ``k`` and ``k + 1``."""
+        return before or here or after or self.region.covered[self.region.member(e, C)] != 0
 
     @ti.func
     def _column(self, e, C, k) -> bool:
@@ -74,7 +69,7 @@ class Tally:
 
     @ti.func
     def _cell(self, spde: ti.template(), e, C, near):
-        """Cell ``C`` of member ``e`` (``near``: :meth:`_near`): the slots it may ask for, and its
+        """Cell ``C`` of member ``e`` (``near``: :meth:`_near`'s answer): the slots it may ask for, and its
         content if the move covers it anew."""
         r = self.region
         J = r.member(e, C)
@@ -105,8 +100,7 @@ class Tally:
                 if k == 0:
                     before, here = self._column(e, C, -1), self._column(e, C, 0)
                 after = self._column(e, C, k + 1)
-                near = before or here or after or self.region.covered[self.region.member(e, C)] != 0
-                a, b = self._cell(spde, e, C, near)
+                a, b = self._cell(spde, e, C, self._near(e, C, before, here, after))
                 need += a
                 gained += b
                 before, here = here, after
@@ -129,5 +123,8 @@ class Tally:
         """Each cell's slots into ``out`` (:meth:`per_cell`)."""
         for J in ti.grouped(self.target):
             C = ti.Vector([J[a + 1] for a in ti.static(range(self.grid.dim))])
-            need, _gained = self._cell(spde, J[0], C, self._near(J[0], C))
+            k = C[self.grid.dim - 1]
+            near = self._near(J[0], C, self._column(J[0], C, k - 1), self._column(J[0], C, k),
+                              self._column(J[0], C, k + 1))
+            need, _gained = self._cell(spde, J[0], C, near)
             out[J] = need

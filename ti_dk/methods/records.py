@@ -6,7 +6,7 @@ diagnostics in one read."""
 import numpy as np
 import taichi as ti
 
-from ..core.grid import Grid, row_cell, row_count
+from ..core.grid import Grid, prefixed, row_cell, row_count
 
 RECORD = ("mass", "negative_cells", "particles", "region_cells")  # the fixed columns, then one per set
 
@@ -50,10 +50,7 @@ class MemberSums:
     def _add(self, field: ti.template(), scale: ti.f64, region: ti.template(), has_region: ti.template(),
              e, i, C):
         """Cell ``C`` of member ``e`` added to row ``(e, i)``."""
-        J = ti.Vector.zero(ti.i32, self.grid.dim + 1)
-        J[0] = e
-        for a in ti.static(range(self.grid.dim)):
-            J[a + 1] = C[a]
+        J = prefixed(e, C, self.grid.dim)
         v = ti.cast(field[J], ti.f64) * scale
         self.rows[e, i, 0] += v
         if v < 0:
@@ -63,11 +60,7 @@ class MemberSums:
                 self.rows[e, i, 2] += v
                 self.rows[e, i, 3] += 1.0
         for s in ti.static(range(self.n_sets)):
-            S = ti.Vector.zero(ti.i32, self.grid.dim + 1)
-            S[0] = s
-            for a in ti.static(range(self.grid.dim)):
-                S[a + 1] = C[a]
-            if self.sets[S] != 0:
+            if self.sets[prefixed(s, C, self.grid.dim)] != 0:
                 self.rows[e, i, ti.static(len(RECORD) + s)] += v
 
     @ti.kernel

@@ -15,8 +15,9 @@ lower arrow), exactly one cell in size at any resolution.
 
 The particle region (the union of the hybrid's boxes; the cell mask's outline) is outlined in
 black inside a white line, visible on every colour, its Berger–Rigoutsos boxes inside it as thin
-red lines (``BOX``; a region of tiles shows its outline only, the density inside left clear), a hole in it (uncovered cells no path of face neighbours outside the region
-links to the domain's edge, :func:`holes`) by a dotted black line on white. Each side is labelled
+red lines (``BOX``; a region of tiles shows its outline only, the density inside left clear), a
+hole in it (uncovered cells no path of face neighbours outside the region links to the domain's
+edge, :func:`holes`) by a dotted black line on white. Each side is labelled
 with its boundary kind (:func:`side_labels`). 2D: one panel per method side by side (the paper's
 Figs. 5–6), an external potential's contours in white, every 2 k_BT up to 12 above its least
 value, each labelled with its k_BT. 3D: one row per method of three mid-plane slices (xy, xz, yz)
@@ -353,7 +354,8 @@ class Renderer:
             text = f"{p.title}: {neg:,} negative cell{'s' * (neg != 1)}"
             if region is not None:
                 what = f"tile{'s' * (len(p.boxes) != 1)}" if p.tiles else f"box{'es' * (len(p.boxes) != 1)} (red)"
-                text += f"; particle region {int(region.sum()):,} cells in {len(p.boxes)} {what}{'; holes dotted' * any_hole}"
+                text += (f"; particle region {int(region.sum()):,} cells in {len(p.boxes)} {what}"
+                         f"{'; holes dotted' * any_hole}")
             if self.dim == 2:
                 self.axes[r][0].set_title(text, fontsize=9.5)
             else:
@@ -381,8 +383,9 @@ class Renderer:
                 rplane = region if cut is None else np.take(region, mids[cut], axis=cut)
                 hole, d = holes(rplane), (self.dx[a], self.dx[b])
                 any_hole |= bool(hole.any())
-                segs = [segs[0] if p.tiles else box_edges(p.boxes, (a, b), self.dx, cut, mids[cut] if cut is not None else 0),
-                        outline(rplane | hole, d), outline(hole, d)]
+                at = mids[cut] if cut is not None else 0
+                boxes = segs[0] if p.tiles else box_edges(p.boxes, (a, b), self.dx, cut, at)  # tiles: outline only
+                segs = [boxes, outline(rplane | hole, d), outline(hole, d)]
             for lc, s in zip(self.lines[r][k], segs[:1] + segs[1:2] * 2 + segs[2:] * 2):  # as (BOX, *OUTLINE, *HOLE)
                 lc.set_segments(s)
         return any_hole
