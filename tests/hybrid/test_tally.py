@@ -1,5 +1,5 @@
-"""A move's two sums on the device (hybrid/tally.py) against NumPy: the slots the pool must offer,
-the content the move covers anew, and each cell's slots."""
+"""A move's sums on the device (hybrid/tally.py) against NumPy: the slots the pool must offer, the
+content the move covers anew, the cells it uncovers, the members it moves, and each cell's slots."""
 import numpy as np
 import pytest
 
@@ -23,9 +23,12 @@ def test_the_sums_are_numpys(cells, boundary):
     s.regions.covered.from_numpy(old.astype(np.uint8))
     tally = s.regridder.tally
     tally.aim(target)
-    most, removed = tally.count(s.spde)
+    most, removed, gone, members = tally.count(s.spde)
     near = old | clustering.grow(target, 1, (None, *s.regions.periodic))
     want = np.where(near, np.ceil(np.maximum(content, 0)), 0.0)
     assert most == pytest.approx(want.reshape(3, -1).sum(axis=1).max(), rel=1e-12)
     assert removed == pytest.approx(content[target & ~old].sum(), rel=1e-12)
+    assert gone == (old & ~target).sum() and members == (old != target).reshape(3, -1).any(axis=1).sum()
     assert np.array_equal(tally.per_cell(s.spde), want)
+    tally.aim(old)  # a move that moves nothing
+    assert tally.count(s.spde)[1:] == (0.0, 0, 0)

@@ -44,14 +44,18 @@ def _blob(cells, **kw):
 
 
 def _plan(s, old, side, *args):
-    """``Region.plan_tiles`` with the region ``old`` (cells): the masks (``old`` itself where none changed,
-    which plan_tiles says with None, having counted the tiles that change on the device: checked here)."""
+    """``Region.plan_tiles`` with the region ``old`` (cells): the masks the flags give (``old`` itself
+    where none changed, which plan_tiles says, having counted on the device the tiles that change
+    and those flagged: checked here)."""
     s.regions.covered.from_numpy(old.astype(np.uint8))
-    masks, tagged = s.regions.plan_tiles(s.spde, *args)
+    moved, tagged = s.regions.plan_tiles(s.spde, *args)
     flags = s.regions.tiles.flags.to_numpy().astype(bool)
-    changed = _touched(tiles.spread(flags, side, old.shape[1:]) != old, side, flags.shape)
-    assert s.regions.tiles.changed[None] == changed.sum() and (masks is None) == (changed.sum() == 0)
-    return (old if masks is None else masks), tagged
+    masks = tiles.spread(flags, side, old.shape[1:])
+    changed = _touched(masks != old, side, flags.shape)
+    counts = s.regions.tiles.counts.to_numpy()
+    assert counts[1] == changed.sum() and moved == (changed.sum() > 0)
+    assert counts[2] == flags.sum() == s.regions.box_count() == tiles.count(masks, side)
+    return masks, tagged
 
 
 def _touched(cells, side, shape):
@@ -111,7 +115,7 @@ def test_flags_follow_the_tag_rule_with_hysteresis(cells, boundary, side, buffer
         assert np.array_equal(masks, want | own) and tagged == n_low and own.any() and not own[1].any()
         # the same again from that region, which keeps all it covers: nothing changes, nothing is read
         assert np.array_equal(_plan(s, masks, side, 5.0, np.inf, True, 2.0)[0], masks)
-        assert s.regions.tiles.changed[None] == 0
+        assert s.regions.tiles.counts[1] == 0
 
 
 def test_hysteresis_keeps_the_region_from_flickering():

@@ -111,6 +111,27 @@ def wrap(grid: ti.template(), D):
 
 
 @ti.func
+def column_hit(grid: ti.template(), mask: ti.template(), e, C, k) -> bool:
+    """Whether ``mask`` (member first, ``(ensemble, *cells)``) is set in member ``e`` within Chebyshev
+    distance 1 of cell ``C`` along every axis but the last, at position ``k`` of the last axis (across
+    periodic sides, :func:`wrap`; nothing beyond another side). A row's cells read three of these,
+    at ``k − 1``, ``k`` and ``k + 1``, each made once for the row: whether the cell is near a set
+    cell in 3^(d−1) lookups, not 3^d."""
+    d = ti.static(grid.dim)
+    D = C
+    D[d - 1] = k
+    hit = False
+    for I in ti.grouped(ti.ndrange(*([3] * (d - 1) or [1]))):
+        if ti.static(d > 1):
+            for a in ti.static(range(d - 1)):
+                D[a] = C[a] + I[a] - 1
+        W, ok = wrap(grid, D)
+        if ok:
+            hit = hit or mask[prefixed(e, W, d)] != 0
+    return hit
+
+
+@ti.func
 def prefixed(k, C, d: ti.template()):
     """The index ``(k, *C)`` of cell ``C`` (``d`` axes) in a field whose first index is a member or a
     set: ``k``."""

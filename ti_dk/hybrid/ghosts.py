@@ -195,32 +195,31 @@ class Sampler:
 
     @ti.kernel
     def cover(self, pool: ti.template(), cur: ti.i32, step: ti.i32, tilt_on: ti.i32, scratch: ti.template(),
-              cells: ti.types.ndarray(dtype=ti.i32, ndim=1), n_new: ti.i32, n_gone: ti.i32, mark: ti.i32):
-        """Move the region by the cells :meth:`Region.stage` listed in ``cells`` (flat indices: the
-        ``n_new`` it gains, then the ``n_gone`` it loses): sample the newly covered cells (birth
-        ``step | REGRID_BIRTH``), whose q becomes N / V_c, and with ``mark`` mark to keep the
-        particles still covered (a region that only grows keeps them all: the caller then skips
-        the marks, a pass over every particle). Loops over the listed cells, not the grid (the
-        work follows the region, as an extension's should). ``scratch`` (i32 per cell, zero) holds the
-        counts until every tilt has read q."""
+              target: ti.template(), mark: ti.i32):
+        """Move the region to ``target`` (a cell mask, ``(ensemble, *cells)``: :attr:`Tally.target`):
+        sample the cells it covers anew (birth ``step | REGRID_BIRTH``), whose q becomes N / V_c,
+        uncover those it leaves, and with ``mark`` mark to keep the particles still covered (a
+        region that only grows keeps them all: the caller then skips the marks, a pass over every
+        particle). Two passes over the grid, a compare a cell, on the device (no list of the
+        changed cells from the host). ``scratch`` (i32 per cell, zero) holds the counts until
+        every tilt has read q."""
         vol = ti.static(self.grid.cell_volume)
-        covered, shape = ti.static(self.region.covered, self.region.covered.shape)
+        covered = ti.static(self.region.covered)
         self.need[None] = 0
         self.created[None] = 0
-        for i in range(n_new):
-            J = self.region.unflatten(cells[i], shape)
-            C = ti.Vector([J[a + 1] for a in ti.static(range(self.dim))])
-            lam = ti.cast(self.spde.q[J], ti.f64) * vol
-            m = self.sample(pool, cur, J[0], C, lam, step, step | REGRID_BIRTH, tilt_on, -1, 0)
-            self.created[None] += m
-            scratch[J] = m
-        for i in range(n_new + n_gone):
-            J = self.region.unflatten(cells[i], shape)
-            if i < n_new:
+        for J in ti.grouped(target):
+            if target[J] != 0 and covered[J] == 0:
+                C = ti.Vector([J[a + 1] for a in ti.static(range(self.dim))])
+                lam = ti.cast(self.spde.q[J], ti.f64) * vol
+                m = self.sample(pool, cur, J[0], C, lam, step, step | REGRID_BIRTH, tilt_on, -1, 0)
+                self.created[None] += m
+                scratch[J] = m
+        for J in ti.grouped(target):
+            if target[J] != 0 and covered[J] == 0:
                 self.spde.q[J] = self.real(ti.cast(scratch[J], ti.f64) / vol)
                 scratch[J] = 0
                 covered[J] = ti.u8(1)
-            else:
+            elif target[J] == 0 and covered[J] != 0:
                 covered[J] = ti.u8(0)
         for u in range(pool.units(cur) * mark):
             e, U, lo, hi = pool.unit(cur, u)

@@ -1,6 +1,6 @@
 """The hybrid's particle region (paper §3.2): on the device the covered mask, the tile flags and the
-flat lists of ring and covered cells; on the host a copy of the mask, the ghost ring
-(from which the lists are made) and each member's boxes.
+flat lists of ring and covered cells (:mod:`.lists`); on the host each member's boxes and, when
+asked, a copy of the mask.
 
 The region comes from tiles flagged on the device (:mod:`.tiles`) or from Berger–Rigoutsos boxes
 (:mod:`.clustering`, host NumPy); everything downstream reads the cell mask, so nothing depends on how
@@ -13,15 +13,8 @@ import numpy as np
 import taichi as ti
 
 from . import clustering, tiles
-from ..core.grid import DIRICHLET, PERIODIC, Grid, prefixed, wrap
-
-
-def _joined(first: np.ndarray, second: np.ndarray) -> np.ndarray:
-    """Two lists of flat indices end to end as one i32 kernel argument (never empty: Taichi takes no
-    array of size 0)."""
-    out = np.zeros(max(first.size + second.size, 1), dtype=np.int32)
-    out[:first.size], out[first.size:first.size + second.size] = first, second
-    return out
+from ..core.grid import PERIODIC, Grid, prefixed, wrap
+from .lists import CellLists
 
 
 @ti.data_oriented
@@ -49,40 +42,49 @@ class Region:
         self.tile = tiles.side_for(params.tile, self.n, params.region_from)  # the tiles' side in cells
         self.tiles = tiles.Tiles(grid, E, self.tile, params.buffer) if params.region == "tiles" else None
         self._boxes: list[list[clustering.Box]] = [[] for _ in range(E)]  # boxes: each member's region
-        self._mask = np.zeros((E, *n), dtype=bool)  # the host's copy of `covered` (read at every regrid)
-        self.ring_mask = np.zeros((E, *self.padded), dtype=bool)  # host: the ghost cells (padded index = cell + 1)
+        self._box_count = 0  # boxes (or tiles) of the region, all members, as its last plan made it
+        self._mask: np.ndarray | None = np.zeros((E, *n), dtype=bool)  # the host's copy of `covered` (None: read when asked)
+        self.lister = CellLists(self)  # makes ring_list, cover_list and leads on the device
 
     # -- host -----------------------------------------------------------------------------
     @property
     def boxes(self) -> "list[list[clustering.Box]] | tiles.MemberBoxes":
         """Each member's region as boxes: Berger–Rigoutsos's, or one per tile (made when asked)."""
-        return self._boxes if self.tiles is None else tiles.MemberBoxes(self._mask, self.tile)
+        return self._boxes if self.tiles is None else tiles.MemberBoxes(self.mask(), self.tile)
 
     def box_count(self) -> int:
-        """How many boxes :attr:`boxes` holds, all members."""
-        return sum(len(b) for b in self._boxes) if self.tiles is None else tiles.count(self._mask, self.tile)
+        """How many boxes the region's last plan made, all members (with tiles: the tiles it covers)."""
+        return sum(len(b) for b in self._boxes) if self.tiles is None else self._box_count
 
     def plan_tiles(self, spde, level: float, keep: float, mean: bool,
-                   guard: float = -math.inf) -> tuple[np.ndarray | None, int]:
-        """A new region of tiles for every member, flagged on the device by :meth:`Tiles.flag`: the masks
-        (None where no member's region changed: two counts read back, not the flags), and how
-        many cells were tagged."""
-        tagged = self.tiles.flag(spde, self, level, keep, mean, guard)
-        return (self.tiles.mask() if self.tiles.changed[None] else None), tagged
+                   guard: float = -math.inf) -> tuple[bool, int]:
+        """A new region of tiles for every member, flagged on the device by :meth:`Tiles.flag` into
+        :attr:`Tiles.target`'s field (the caller's): whether a member's region changed, and how many
+        cells were tagged (three counts read back, nothing grid-sized)."""
+        tagged, changed, self._box_count = self.tiles.flag(spde, self, level, keep, mean, guard)
+        return changed > 0, tagged
 
     def mask(self) -> np.ndarray:
-        """The region of every member, ``(ensemble, *cells)`` booleans (from the host's copy: no
-        device read, which would cost every extension a kernel launch and a copy)."""
+        """The region of every member, ``(ensemble, *cells)`` booleans: the host's copy, read from the
+        device when the region has moved since (a grid-sized read: frames and checkpoints ask, a
+        step does not)."""
+        if self._mask is None:
+            self._mask = self.covered.to_numpy().astype(bool)
         return self._mask.copy()
 
-    def stage(self, masks: np.ndarray) -> tuple[np.ndarray, int, int]:
-        """Make ``masks`` the region :meth:`mask` answers from now on; return what the sampler's
-        ``cover`` changes ``covered`` by: the flat indices of the cells the region gains, then
-        of those it loses, and the two counts (lists: a grid-sized field written with
-        ``from_numpy`` and read whole costs far more at every extension in 3D)."""
-        old, self._mask = self._mask, np.array(masks, dtype=bool, order="C")
-        new, gone = np.flatnonzero(self._mask & ~old), np.flatnonzero(old & ~self._mask)
-        return _joined(new, gone), new.size, gone.size
+    def moved(self, masks: np.ndarray | None = None) -> None:
+        """``covered`` now holds a new region (``masks``, where the caller has it on the host): the
+        lists made again on the device, the host's copy forgotten unless given."""
+        self._mask = None if masks is None else np.array(masks, dtype=bool, order="C")
+        if masks is not None and self.tiles is not None:
+            self._box_count = tiles.count(self._mask, self.tile)
+        self.n_ring, self.n_cover = self.lister.make()
+
+    @property
+    def ring_mask(self) -> np.ndarray:
+        """The ghost cells of every member on the padded grid (padded index = cell index + 1), read
+        from the device."""
+        return self.lister.ring.to_numpy().astype(bool)
 
     def plan(self, ppc: np.ndarray) -> tuple[np.ndarray, int]:
         """A new region for every member from its SPDE content ``ppc`` (:func:`clustering.region`;
@@ -115,41 +117,6 @@ class Region:
         """The region ``masks`` and its ghost ring (the cells whose particles it keeps)."""
         return clustering.grow(masks, 1, (None, *self.periodic))
 
-    def lists(self, grown: np.ndarray | None = None) -> None:
-        """Ghost ring and the flat lists of ring and covered cells, from ``covered`` (its host copy;
-        ``grown``: its :meth:`grown`, where the caller has made it already).
-
-        The lists are made on the host (``np.flatnonzero``: ascending flat indices) and copied in
-        by one kernel: making them on the device needs the ring as a grid-sized field written with
-        ``from_numpy``, and that write costs most of a regrid (measured)."""
-        self.ring_mask = self._ring(self.grown(self._mask) if grown is None else grown)
-        ring, cover = np.flatnonzero(self.ring_mask), np.flatnonzero(self._mask)
-        self.n_ring, self.n_cover = ring.size, cover.size
-        self._load_lists(_joined(ring, cover), ring.size, cover.size)
-
-    def _ring(self, grown: np.ndarray) -> np.ndarray:
-        """The ghost cells of the region (from the host's copy of ``covered``) on the padded grid:
-        not covered, within Chebyshev distance 1 of a covered cell (across periodic sides); outside
-        the grid only beyond a Dirichlet side, and not beyond two sides at once.
-
-        Host NumPy: the region's dilation ``grown`` (:meth:`grown`) gives the cells inside the grid; a
-        reservoir layer beyond a Dirichlet side is the boundary layer of covered cells dilated
-        along the other axes. (A kernel over the padded grid that looks at each cell's
-        3^d neighbours is slower, as measured.)"""
-        m, d = self._mask, self.dim
-        out = np.zeros((self.ensemble, *self.padded), dtype=bool)
-        inner = (slice(None),) + (slice(1, -1),) * d
-        out[inner] = grown & ~m
-        for a in range(d):
-            for side, kind in enumerate(self.grid.boundary[a]):
-                if kind == DIRICHLET:
-                    layer = np.take(m, 0 if side == 0 else self.n[a] - 1, axis=a + 1)
-                    others = tuple(p for b, p in enumerate(self.periodic) if b != a)
-                    index = list(inner)
-                    index[a + 1] = 0 if side == 0 else -1
-                    out[tuple(index)] = clustering.grow(layer, 1, (None, *others))
-        return out
-
     def state(self) -> dict[str, np.ndarray]:
         """The covered mask and every member's boxes (rows ``(member, *lo, *hi)``), for a checkpoint."""
         boxes = [(e, *lo, *hi) for e, bs in enumerate(self.boxes) for lo, hi in bs]
@@ -159,8 +126,7 @@ class Region:
     def load_state(self, st: dict[str, np.ndarray]) -> None:
         """The region of :meth:`state` back, its lists made again."""
         self.covered.from_numpy(st["covered"])
-        self._mask = st["covered"].astype(bool)
-        self.lists()
+        self.moved(st["covered"])
         self._boxes = [[] for _ in range(self.ensemble)]
         d = self.dim
         for row in st["boxes"]:
@@ -199,7 +165,7 @@ class Region:
     @ti.func
     def ring_cell(self, i):
         """The member-first index of entry ``i`` of ``ring_list``, and whether it is a grid cell."""
-        P = self.unflatten(self.ring_list[i], ti.static(self.ring_mask.shape))
+        P = self.unflatten(self.ring_list[i], ti.static(self.lister.ring.shape))
         J = P - 1
         J[0] = P[0]
         return J, self.inside(ti.Vector([J[a + 1] for a in ti.static(range(self.dim))]))
@@ -255,16 +221,3 @@ class Region:
             elif total > 0 and hi[a] == total:
                 out = 2 * a + 1
         return out
-
-    @ti.kernel
-    def _load_lists(self, flat: ti.types.ndarray(dtype=ti.i32, ndim=1), n_ring: ti.i32, n_cover: ti.i32):
-        """``ring_list`` and ``cover_list`` from ``flat``: the first ``n_ring`` entries, then ``n_cover``;
-        then the ring cells' :attr:`leads` (``covered`` is the new region's)."""
-        for i in range(n_ring + n_cover):
-            if i < n_ring:
-                self.ring_list[i] = flat[i]
-            else:
-                self.cover_list[i - n_ring] = flat[i]
-        for i in range(n_ring):
-            J, _inside = self.ring_cell(i)
-            self.leads[i] = ti.cast(self.lead(J[0], ti.Vector([J[a + 1] for a in ti.static(range(self.dim))])), ti.i8)

@@ -138,12 +138,11 @@ class Regridder:
         changes no result, so the scheduled regrid's sort is skipped too)."""
         s = self.solver
         mean = self.params.region_from == "mean" and not extending
-        masks, tagged = s.regions.plan_tiles(s.spde, level, keep, mean, self.guard)
+        changed, tagged = s.regions.plan_tiles(s.spde, level, keep, mean, self.guard)
         members = 0  # members whose region changed
-        if masks is not None:
-            members = int((masks != s.regions.mask()).reshape(s.ensemble, -1).any(axis=1).sum())
+        if changed:
             s.regions.tiles.aim(self.tally.target)  # the flags' region, on the device
-            self._move(masks, n, sort=not extending, aimed=True)
+            members = self._move(None, n, sort=not extending)
         else:
             self._removed, self._created = 0.0, 0
         self._log(n, tagged, members if extending else 0)
@@ -188,40 +187,47 @@ class Regridder:
         self._move(masks, n)
         self.solver.diagnose()
 
-    def _move(self, masks: np.ndarray, n: int, sort: bool = False, aimed: bool = False) -> None:
+    def _move(self, masks: np.ndarray | None, n: int, sort: bool = False) -> int:
         """:meth:`set_region` inside a step (regrid, extension), where the step's own
-        synchronisation brings the diagnostics up to date: no full-grid pass here. With ``sort``
-        (the scheduled regrids) the kept particles are put in cell order (:meth:`Coupling.sort`).
-        Between steps every particle lies in a covered cell, so a region that only grows keeps
-        them all where they are (:meth:`pools.ParticlePool.settle`; a compaction would copy every
-        particle at every extension). The pool's room and the content the new cells held are
-        summed on the device (:class:`~.tally.Tally`; ``aimed``: its target is ``masks`` already)."""
+        synchronisation brings the diagnostics up to date: no full-grid pass here. ``masks``: the
+        new region made on the host, or None where :attr:`Tally.target` holds it already (tiles:
+        then nothing grid-sized crosses to the host, unless the pool plans its room by cell). With
+        ``sort`` (the scheduled regrids) the kept particles are put in cell order
+        (:meth:`Coupling.sort`). Between steps every particle lies in a covered cell, so a region
+        that only grows keeps them all where they are (:meth:`pools.ParticlePool.settle`; a
+        compaction would copy every particle at every extension). The pool's room, the content the
+        new cells held, the cells uncovered and the members whose region moves are summed on the
+        device (:class:`~.tally.Tally`); returns the last."""
         s = self.solver
-        masks = np.broadcast_to(masks, (s.ensemble, *s.n))
-        if not aimed:
+        if masks is not None:
+            masks = np.broadcast_to(masks, (s.ensemble, *s.n))
             self.tally.aim(masks)
-        most, self._removed = self.tally.count(s.spde)
-        old = s.regions.mask()
-        grown = s.regions.grown(masks)
-        near = grown | old  # where particles can be while the region moves: old, new, ring
-        s.pool = s.pool.fitted(self.tally.per_cell(s.spde), near) if s.pool.by_cell else s.pool.grown(pools.capacity(most))
+        most, self._removed, gone, members = self.tally.count(s.spde)
+        grown = None
+        if s.pool.by_cell:  # its room planned, and kept, by cell: where particles can be while the region moves
+            target = self.tally.target.to_numpy().astype(bool) if masks is None else masks
+            grown = s.regions.grown(target)
+            s.pool = s.pool.fitted(self.tally.per_cell(s.spde), grown | s.regions.mask())
+        else:
+            s.pool = s.pool.grown(pools.capacity(most))
         sort = sort and not s.pool.cell_ordered
-        cells, n_new, n_gone = s.regions.stage(masks)
-        s.sampler.cover(s.pool, s.cur, n * s.substeps, s.tilt_on(n), s.coupling.count,
-                        cells, n_new, n_gone, int(sort or n_gone > 0))
+        s.sampler.cover(s.pool, s.cur, n * s.substeps, s.tilt_on(n), s.coupling.count, self.tally.target,
+                        int(sort or gone > 0))
         self._created = int(s.sampler.created[None])
         if sort:
             s.coupling.sort(s.pool, s.cur)
             s.cur = 1 - s.cur
-        elif n_gone:
+        elif gone:
             s.compact()
         else:  # the region only grew (every extension): no particle leaves, a compaction would copy them all
             s.pool.settle(s.cur)
-        s.pool.retain(grown)  # the new region and its ring
-        s.regions.lists(grown)
+        if grown is not None:
+            s.pool.retain(grown)  # the new region and its ring
+        s.regions.moved(masks)
         if s.sampler.check_need() > s.pool.capacity:  # the estimate bounds it; kept as a guard
             raise RuntimeError("particle pool estimate too small at a regrid")
         self.change += self._created - self._removed
+        return members
 
     # -- checkpoints -------------------------------------------------------------------------
     def state(self) -> dict[str, np.ndarray]:

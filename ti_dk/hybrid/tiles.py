@@ -2,9 +2,8 @@
 
 The grid is cut into tiles of ``tile`` cells a side (the last tile along an axis may be cut short
 by the grid). One kernel flags every tile of every member from the tag rule of
-:func:`clustering.tag` grown by ``buffer`` (:meth:`Tiles.flag`), and the host reads back only the
-flags, a bit a tile (``ensemble × ⌈tiles / 32⌉`` words), and only where a member's region
-changed. Every tile that holds a tag is covered whole, as SAMRAI's ``TileClustering`` and
+:func:`clustering.tag` grown by ``buffer`` (:meth:`Tiles.flag`), and the host reads back three
+counts; the region, its ring and their lists are made from the flags on the device. Every tile that holds a tag is covered whole, as SAMRAI's ``TileClustering`` and
 Uintah's ``TiledRegridder`` make every tile with a tag a box; unlike
 Berger–Rigoutsos (:func:`clustering.cluster`, ``region = "boxes"``, the paper's), the region then
 follows the tags to within a tile, whatever the box-cutting settings.
@@ -45,17 +44,14 @@ class Tiles:
         self.dim, self.n = grid.dim, grid.cells
         self.shape = tuple(-(-m // side) for m in self.n)  # tiles per axis
         self.flags = ti.field(ti.u8, shape=(ensemble, *self.shape))  # 1: the tile is in the particle region
-        self.count = math.prod(self.shape)  # tiles per member
-        # the flags again, 32 to a word (tile t of a member: bit t % 32 of word t // 32): what the host reads
-        self.packed = ti.field(ti.u32, shape=(ensemble, -(-self.count // 32)))
-        self.changed = ti.field(ti.i32, shape=())  # tiles whose cover the last flag changed, all members
+        # of the last flag, all members: cells below the threshold, tiles whose cover changed, tiles flagged
+        self.counts = ti.field(ti.i32, shape=3)
 
-    def mask(self) -> np.ndarray:
-        """The region the flags give, ``(ensemble, *cells)`` booleans (one small read: the packed
-        flags, a bit a tile)."""
-        words = np.ascontiguousarray(self.packed.to_numpy().astype("<u4"))
-        bits = np.unpackbits(words.view(np.uint8), axis=1, bitorder="little")[:, :self.count]
-        return spread(bits.reshape(self.ensemble, *self.shape).astype(bool), self.side, self.n)
+    def flag(self, spde, region, threshold: float, keep: float, mean: bool, guard: float) -> tuple[int, int, int]:
+        """:meth:`_flag`, then its :attr:`counts` (one read of 12 bytes): the cells below
+        ``threshold``, the tiles whose cover changed and the tiles flagged, all members."""
+        self._flag(spde, region, threshold, keep, mean, guard)
+        return tuple(int(c) for c in self.counts.to_numpy())
 
     @ti.func
     def _content(self, spde: ti.template(), region: ti.template(), e, C, mean: ti.template()) -> ti.f64:
@@ -68,8 +64,8 @@ class Tiles:
         return v * self.grid.cell_volume
 
     @ti.kernel
-    def flag(self, spde: ti.template(), region: ti.template(), threshold: ti.f64, keep: ti.f64,
-             mean: ti.template(), guard: ti.f64) -> ti.i32:
+    def _flag(self, spde: ti.template(), region: ti.template(), threshold: ti.f64, keep: ti.f64,
+              mean: ti.template(), guard: ti.f64):
         """Flag each tile of each member: 1 where one of its cells is tagged after the buffer (a cell
         within Chebyshev distance ``buffer`` of it, across periodic sides, holds a content
         ``q V_c`` below ``threshold``: the rule of :func:`clustering.tag`, negative cells included), or
@@ -82,14 +78,12 @@ class Tiles:
         interface: ``benchmarks/moving_region.py``); a tile is then also flagged where one of its
         cells is within ``buffer`` of a cell whose member's own content is below ``guard`` (the
         positivity guard of ``regrid_floor``; −∞: none), so that no tile q̄ releases leaves a
-        member's cell below it uncovered. Returns the cells below ``threshold`` themselves
-        (before the buffer), all members (the regrid log's efficiency); :attr:`changed` counts the
-        tiles whose cells the new flags cover otherwise than ``region.covered`` does."""
+        member's cell below it uncovered. :attr:`counts`: the cells below ``threshold`` themselves
+        (before the buffer; the regrid log's efficiency), the tiles whose cells the new flags cover
+        otherwise than ``region.covered`` does, and the tiles flagged (the log's boxes)."""
         side, b = ti.static(self.side, self.buffer)
-        tagged = 0
-        self.changed[None] = 0
-        for W in ti.grouped(self.packed):
-            self.packed[W] = ti.u32(0)
+        for i in range(3):
+            self.counts[i] = 0
         for K in ti.grouped(self.flags):
             lo = ti.Vector([K[a + 1] * side for a in ti.static(range(self.dim))])  # the tile's first cell
             end = ti.Vector([ti.min(lo[a] + side, self.n[a]) for a in ti.static(range(self.dim))])  # past its last
@@ -100,7 +94,7 @@ class Tiles:
                     now = region.covered[region.member(K[0], C)] != 0
                     old, whole = old or now, whole and now
                     if self._content(spde, region, K[0], C, mean) < threshold:
-                        tagged += 1
+                        self.counts[0] += 1
             # the least content within the buffer of any of its cells (q̄'s, the member's): the least
             # over the tile grown by the buffer, (side + 2b)^d cells, not side^d · (2b + 1)^d
             least, own = ti.math.inf, ti.math.inf
@@ -115,13 +109,9 @@ class Tiles:
             flag = least < threshold or own < guard or (old and least < keep)
             self.flags[K] = ti.u8(flag)
             if flag:
-                t = 0  # the tile's flat index in its member
-                for a in ti.static(range(self.dim)):
-                    t = t * self.shape[a] + K[a + 1]
-                ti.atomic_or(self.packed[K[0], t // 32], ti.u32(1) << ti.u32(t % 32))
+                self.counts[2] += 1
             if (flag and not whole) or (not flag and old):
-                self.changed[None] += 1
-        return tagged
+                self.counts[1] += 1
 
 
     @ti.kernel
