@@ -81,38 +81,75 @@ class Tiles:
         member's cell below it uncovered. :attr:`counts`: the cells below ``threshold`` themselves
         (before the buffer; the regrid log's efficiency), the tiles whose cells the new flags cover
         otherwise than ``region.covered`` does, and the tiles flagged (the log's boxes)."""
-        side, b = ti.static(self.side, self.buffer)
+        side, b, d, n = ti.static(self.side, self.buffer, self.dim, self.n)
+        W = ti.static(side + 2 * b)  # a tile grown by the buffer, along the last axis
+        guarded = guard > -ti.math.inf
         for i in range(3):
             self.counts[i] = 0
-        for K in ti.grouped(self.flags):
-            lo = ti.Vector([K[a + 1] * side for a in ti.static(range(self.dim))])  # the tile's first cell
-            end = ti.Vector([ti.min(lo[a] + side, self.n[a]) for a in ti.static(range(self.dim))])  # past its last
-            old, whole = False, True
-            for I in ti.grouped(ti.ndrange(*([side] * self.dim))):  # the tile's cells
-                C = lo + I
-                if (C < end).all():
-                    now = region.covered[region.member(K[0], C)] != 0
-                    old, whole = old or now, whole and now
-                    if self._content(spde, region, K[0], C, mean) < threshold:
-                        self.counts[0] += 1
-            # the least content within the buffer of any of its cells (q̄'s, the member's): the least
-            # over the tile grown by the buffer, (side + 2b)^d cells, not side^d · (2b + 1)^d
-            least, own = ti.math.inf, ti.math.inf
-            for I in ti.grouped(ti.ndrange(*([side + 2 * b] * self.dim))):
-                C = lo + I - b
-                if (C < end + b).all():
-                    D, ok = wrap(self.grid, C)
-                    if ok:
-                        least = ti.min(least, self._content(spde, region, K[0], D, mean))
-                        if ti.static(mean):
-                            own = ti.min(own, self._content(spde, region, K[0], D, False))
-            flag = least < threshold or own < guard or (old and least < keep)
-            self.flags[K] = ti.u8(flag)
-            if flag:
-                self.counts[2] += 1
-            if (flag and not whole) or (not flag and old):
-                self.counts[1] += 1
+        for R in ti.grouped(ti.ndrange(self.ensemble, *self.shape[:-1])):  # a row of tiles along the last axis
+            lo = ti.Vector([R[a + 1] * side for a in ti.static(range(d - 1))] + [0])  # its first cell
+            end = ti.Vector([ti.min(lo[a] + side, n[a]) for a in ti.static(range(d))])  # past its last (but along the last axis)
+            # the least content (q̄'s, the member's own) of the cells within the buffer of the row, by position
+            # along the last axis: a window of W of them, slid by a tile (each made once, not once a tile)
+            least = ti.Vector([ti.math.inf] * W, dt=ti.f64)
+            own = ti.Vector([ti.math.inf] * W, dt=ti.f64)
+            for i in ti.static(range(2 * b)):  # the window of tile −1: positions −side − b …, its last 2b made
+                least[side + i], own[side + i] = self._column(spde, region, R[0], lo, end, i - b, mean, guarded)
+            for t in range(self.shape[d - 1]):
+                for i in ti.static(range(2 * b)):
+                    least[i], own[i] = least[i + side], own[i + side]
+                for i in ti.static(range(side)):
+                    least[2 * b + i], own[2 * b + i] = self._column(spde, region, R[0], lo, end, t * side + b + i,
+                                                                    mean, guarded)
+                K = ti.Vector([R[a] for a in ti.static(range(d))] + [t])
+                self._set(spde, region, K, least.min(), own.min(), threshold, keep, guard, mean)
 
+    @ti.func
+    def _column(self, spde: ti.template(), region: ti.template(), e, lo, end, k, mean: ti.template(), guarded):
+        """The least content ``q V_c`` (q̄'s with ``mean``) and, with ``mean`` and ``guarded``, the least
+        of member ``e``'s own, over the cells at position ``k`` of the last axis within the buffer
+        of a row of tiles along every other axis (``[lo_a − b, end_a + b)``, across periodic sides);
+        none beyond ``n + b`` along the last axis (past a last tile cut short by the grid)."""
+        b, d = ti.static(self.buffer, self.dim)
+        least, own = ti.math.inf, ti.math.inf
+        if k < self.n[d - 1] + b:
+            for I in ti.grouped(ti.ndrange(*([self.side + 2 * b] * (d - 1) or [1]))):
+                C = lo
+                C[d - 1] = k
+                near = True
+                for a in ti.static(range(d - 1)):
+                    C[a] = lo[a] + I[a] - b
+                    near = near and C[a] < end[a] + b
+                D, ok = wrap(self.grid, C)
+                if near and ok:
+                    least = ti.min(least, self._content(spde, region, e, D, mean))
+                    if ti.static(mean):
+                        if guarded:
+                            own = ti.min(own, self._content(spde, region, e, D, False))
+        return least, own
+
+    @ti.func
+    def _set(self, spde: ti.template(), region: ti.template(), K, least, own, threshold, keep, guard,
+             mean: ti.template()):
+        """Tile ``K``'s flag from the least contents within the buffer of it (:meth:`_column`) and its
+        own cells (covered now, and below ``threshold``), with :attr:`counts`."""
+        side = ti.static(self.side)
+        lo = ti.Vector([K[a + 1] * side for a in ti.static(range(self.dim))])  # the tile's first cell
+        end = ti.Vector([ti.min(lo[a] + side, self.n[a]) for a in ti.static(range(self.dim))])  # past its last
+        old, whole = False, True
+        for I in ti.grouped(ti.ndrange(*([side] * self.dim))):  # the tile's cells
+            C = lo + I
+            if (C < end).all():
+                now = region.covered[region.member(K[0], C)] != 0
+                old, whole = old or now, whole and now
+                if self._content(spde, region, K[0], C, mean) < threshold:
+                    self.counts[0] += 1
+        flag = least < threshold or own < guard or (old and least < keep)
+        self.flags[K] = ti.u8(flag)
+        if flag:
+            self.counts[2] += 1
+        if (flag and not whole) or (not flag and old):
+            self.counts[1] += 1
 
     @ti.kernel
     def aim(self, target: ti.template()):
