@@ -132,6 +132,15 @@ def column_hit(grid: ti.template(), mask: ti.template(), e, C, k) -> bool:
 
 
 @ti.func
+def offset(o, d: ti.template()):
+    """The step ``δ ∈ {−1, 0, 1}^d`` numbered ``o = Σ_a (δ_a + 1) 3^a`` (``0 ≤ o < 3^d``)."""
+    off = ti.Vector.zero(ti.i32, d)
+    for a in ti.static(range(d)):
+        off[a] = (o // 3**a) % 3 - 1
+    return off
+
+
+@ti.func
 def prefixed(k, C, d: ti.template()):
     """The index ``(k, *C)`` of cell ``C`` (``d`` axes) in a field whose first index is a member or a
     set: ``k``."""

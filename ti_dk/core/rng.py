@@ -24,7 +24,7 @@ FACE_NOISE = 0  # one counter per group of 4 // dim cells along the last axis; w
 WALK = 1  # one counter per group of 4 // dim particle ids and step; word (id0 mod G)·dim + a: step along a
 SAMPLE_COUNT = 2  # Bernoulli draw for the fractional particle of a cell
 SAMPLE_POSITION = 3  # uniform position of a sampled particle
-SAMPLE_ENTRY = 4  # a ghost drawn as one that crosses its cell's lead face (hybrid.ghosts.Sampler.entering); attempt t in the free bits
+SAMPLE_ENTRY = 4  # a ghost drawn as one that enters the region (hybrid.crossings.Crossings.entrant); attempt t in the free bits
 PURPOSE_BITS = 4  # the purpose occupies the low bits of word 3; the rest is free for callers
 
 _OCT0 = 8  # octaves m < 2**_OCT0 of the 31-bit magnitude (p < 2**-24) use Acklam's tail formula

@@ -79,22 +79,16 @@ class Sampler:
     @ti.func
     def _placed(self, e, C, lin, k, step, birth, tilt, shaped, lead, walked: ti.template()):
         """Particle ``k`` of cell ``C`` (``lin``: its padded flat index): identity, position, kept,
-        clamped steps; placed by :meth:`InCell.place`. With ``walked`` (a ghost) kept only if its walk ends in the region: the
-        ``k``-th crossing of the ``lead`` face (:meth:`Crossings.entering`) where there is one and
-        no potential drifts, else placed and walked (:meth:`Crossings.walk`)."""
+        clamped steps; placed by :meth:`InCell.place`, and with ``walked`` (a ghost, with a potential)
+        walked (:meth:`Crossings.walk`, along its ``lead`` face first) and kept only if its walk ends
+        in the region."""
         key = ti.math.uvec2(self.key[0], self.key[1])
         id0 = (lin << ti.u32(self.id_bits)) | ti.u32(k)
-        y, keep, clamped = ti.Vector.zero(self.real, self.dim), True, 0
-        crossing = False
-        if ti.static(walked and self.crossings.direct):
-            crossing = lead >= 0
-        if crossing:
-            y, keep, clamped = self.crossings.entering(e, C, id0, step, birth, tilt, lead)
-        else:
-            r = rng.philox4x32(ti.math.uvec4(id0, ti.u32(step), self.walker.member(e), ti.u32(rng.SAMPLE_POSITION)), key)
-            y = self.incell.place(C, r, tilt, shaped)
-            if ti.static(walked):
-                y, keep, clamped = self.crossings.walk(e, C, id0, y, step, birth, lead)
+        keep, clamped = True, 0
+        r = rng.philox4x32(ti.math.uvec4(id0, ti.u32(step), self.walker.member(e), ti.u32(rng.SAMPLE_POSITION)), key)
+        y = self.incell.place(C, r, tilt, shaped)
+        if ti.static(walked):
+            y, keep, clamped = self.crossings.walk(e, C, id0, y, step, birth, lead)
         return id0, y, keep, clamped
 
     @ti.func
@@ -107,19 +101,19 @@ class Sampler:
             pool.pid[I] = ti.math.uvec2(id0, ti.u32(birth))
 
     @ti.func
-    def sample(self, pool: ti.template(), buf, e, C, lam, step, birth, tilt_on, lead, walked: ti.template()):
+    def sample(self, pool: ti.template(), buf, e, C, lam, step, birth, tilt_on, near, walked: ti.template()):
         """Sample ℓ particles plus one with probability α (``lam = ℓ + α``) in cell ``C`` (paper §3),
         placed by :meth:`InCell.tilt` (uniform where ``tilt_on`` is 0), and append them to buffer ``buf``
         of member ``e`` (the pool's unit for that cell: :mod:`pool`); returns how many were sampled.
 
         With ``walked`` (the ghosts of a particle sub-step ``step``) only the ghosts whose walk ends
-        in the region are appended, one slot each as found, already walked (the hybrid's walk does
-        not move them again): where the cell has a lead face and no potential, the
-        :meth:`Crossings.crossing` ones drawn by :meth:`Crossings.entering`, else each ghost walked
-        by :meth:`_placed`; ``lead`` is the cell's lead face (:attr:`Region.leads`). (The slots'
-        order is the threads'; a particle's numbers are keyed on its identity, and
-        :meth:`pools.occupied` sorts.) ``walked`` is a compile-time flag: the regrid's ``cover``
-        does not compile the walk."""
+        in the region are appended, already walked (the hybrid's walk does not move them again):
+        without a potential those :meth:`Crossings.count` draws, each by :meth:`Crossings.entrant`
+        (one atomic a cell for their slots); with one, each ghost walked by :meth:`_placed` and
+        appended where it ends covered. ``near`` is the cell's covered neighbours
+        (:attr:`Region.near_list`). (The slots' order is the threads'; a particle's numbers are
+        keyed on its identity, and :meth:`pools.occupied` sorts.) ``walked`` is a compile-time
+        flag: the regrid's ``cover`` does not compile the walk."""
         lin = ti.u32(0)
         for a in ti.static(range(self.dim)):
             lin = lin * ti.u32(self.region.padded[a]) + ti.u32(C[a] + 1)
@@ -134,24 +128,26 @@ class Sampler:
             tilt, shaped = self.incell.tilt(e, C), True
         U = pool.unit_of(e, C)
         if ti.static(walked):
-            n, clamped, top = m, 0, 0  # ghosts to walk (all, or the crossings); clamped; slots used
-            base = -1  # the crossings' slots, taken at once (-1: a slot per entering ghost as found)
+            clamped, top = 0, 0  # clamped steps of the entrants; slots used
             if ti.static(self.crossings.direct):
-                if lead >= 0:
-                    n = self.crossings.crossing(m, lead, tilt, bits[1])
-                    if n > 0:  # nearly every crossing enters: one atomic per cell, not one per ghost
-                        base = pool.append(buf, U, n)
-                        top = base + n
-            for k in range(n):
-                id0, y, keep, cl = self._placed(e, C, lin, k, step, birth, tilt, shaped, lead, walked)
-                if keep:
-                    clamped += cl
-                if base >= 0:  # a crossing that ends uncovered is stored as a hole (birth 0: dropped by the walk)
-                    self._store(pool, buf, U, base + k, id0, y, ti.select(keep, birth, 0))
-                elif keep:
-                    j = pool.append(buf, U, 1)
-                    top = ti.max(top, j + 1)
-                    self._store(pool, buf, U, j, id0, y, birth)
+                n, total, lo, stay, hi = self.crossings.count(m, near, C, tilt, bits[1])
+                if n > 0:
+                    base = pool.append(buf, U, n)
+                    top = base + n
+                    for k in range(n):
+                        id0 = (lin << ti.u32(self.id_bits)) | ti.u32(k)
+                        y, cl = self.crossings.entrant(e, C, id0, step, near, tilt, lo, stay, hi, total)
+                        clamped += cl
+                        self._store(pool, buf, U, base + k, id0, y, birth)
+            else:
+                lead = self.crossings.lead(near)
+                for k in range(m):
+                    id0, y, keep, cl = self._placed(e, C, lin, k, step, birth, tilt, shaped, lead, walked)
+                    if keep:
+                        clamped += cl
+                        j = pool.append(buf, U, 1)
+                        top = ti.max(top, j + 1)
+                        self._store(pool, buf, U, j, id0, y, birth)
             ti.atomic_max(self.need[None], top)
             if clamped:
                 self.clamped[None] += clamped
@@ -190,7 +186,7 @@ class Sampler:
                         lam = self.grid.reservoir[a][0] * vol
                     elif C[a] >= self.n[a]:
                         lam = self.grid.reservoir[a][1] * vol
-            self.sample(pool, cur, J[0], C, lam, step, step + 1, tilt_on, ti.cast(self.region.leads[i], ti.i32), walked)
+            self.sample(pool, cur, J[0], C, lam, step, step + 1, tilt_on, self.region.near_list[i], walked)
         return self.need[None]
 
     @ti.kernel
@@ -211,7 +207,7 @@ class Sampler:
             if target[J] != 0 and covered[J] == 0:
                 C = ti.Vector([J[a + 1] for a in ti.static(range(self.dim))])
                 lam = ti.cast(self.spde.q[J], ti.f64) * vol
-                m = self.sample(pool, cur, J[0], C, lam, step, step | REGRID_BIRTH, tilt_on, -1, 0)
+                m = self.sample(pool, cur, J[0], C, lam, step, step | REGRID_BIRTH, tilt_on, ti.u32(0), 0)
                 self.created[None] += m
                 scratch[J] = m
         for J in ti.grouped(target):

@@ -10,7 +10,7 @@ from ..core.grid import DIRICHLET, column_hit, exclusive_scan, prefixed
 
 @ti.data_oriented
 class CellLists:
-    """Makes :class:`~.region.Region`'s ``ring_list``, ``cover_list`` and ``leads`` from its ``covered``.
+    """Makes :class:`~.region.Region`'s ``ring_list``, ``cover_list`` and ``near_list`` from its ``covered``.
 
     Both lists hold flat (C-order, member-first) indices, ascending, the order of
     ``np.flatnonzero``, so a loop over them visits cells in a fixed order whatever the thread count:
@@ -90,7 +90,7 @@ class CellLists:
         for _ in range(1):
             self.sizes[0] = exclusive_scan(self.ring_rows, 0, self.ring_rows.shape[1])
             self.sizes[1] = exclusive_scan(self.cover_rows, 0, self.cover_rows.shape[1])
-        for R in ti.grouped(ti.ndrange(r.ensemble, *P[:-1])):  # each row's ghost cells from its offset, with their leads
+        for R in ti.grouped(ti.ndrange(r.ensemble, *P[:-1])):  # each row's ghost cells from its offset, with their covered neighbours
             i = self.ring_rows[0, self._row(R, P)]
             base = self._row(R, P) * P[d - 1]  # the flat index of the row's first cell
             for j in range(P[d - 1]):
@@ -98,7 +98,7 @@ class CellLists:
                 if self.ring[Q]:
                     r.ring_list[i] = base + j
                     C = ti.Vector([Q[a + 1] - 1 for a in ti.static(range(d))])
-                    r.leads[i] = ti.cast(r.lead(R[0], C), ti.i8)
+                    r.near_list[i] = r.near(R[0], C)
                     i += 1
         for R in ti.grouped(ti.ndrange(r.ensemble, *n[:-1])):  # each row's covered cells from its offset
             i = self.cover_rows[0, self._row(R, n)]

@@ -13,7 +13,7 @@ import numpy as np
 import taichi as ti
 
 from . import clustering, tiles
-from ..core.grid import PERIODIC, Grid, prefixed, wrap
+from ..core.grid import PERIODIC, Grid, offset, prefixed, wrap
 from .lists import CellLists
 
 
@@ -36,7 +36,7 @@ class Region:
         self.covered = ti.field(ti.u8, shape=(E, *n))  # 1 where the cell is in the particle region
         self.ring_list = ti.field(ti.i32, shape=E * math.prod(self.padded))  # flat indices of ghost cells
         self.cover_list = ti.field(ti.i32, shape=E * math.prod(n))  # flat indices of covered cells
-        self.leads = ti.field(ti.i8, shape=self.ring_list.shape)  # the lead face of each ring cell (lead; -1: none)
+        self.near_list = ti.field(ti.u32, shape=self.ring_list.shape)  # each ring cell's covered neighbours (near)
         self.low = ti.field(ti.i32, shape=())  # uncovered cells below the extension's trigger at the last count_low
         self.n_ring, self.n_cover = 0, 0  # lengths of the two lists
         self.tile = tiles.side_for(params.tile, self.n, params.region_from)  # the tiles' side in cells
@@ -44,7 +44,7 @@ class Region:
         self._boxes: list[list[clustering.Box]] = [[] for _ in range(E)]  # boxes: each member's region
         self._box_count = 0  # boxes (or tiles) of the region, all members, as its last plan made it
         self._mask: np.ndarray | None = np.zeros((E, *n), dtype=bool)  # the host's copy of `covered` (None: read when asked)
-        self.lister = CellLists(self)  # makes ring_list, cover_list and leads on the device
+        self.lister = CellLists(self)  # makes ring_list, cover_list and near_list on the device
 
     # -- host -----------------------------------------------------------------------------
     @property
@@ -190,34 +190,19 @@ class Region:
         self.low[None] = due
 
     @ti.func
-    def lead(self, e, C):
-        """``2a + s`` for the first axis ``a`` such that every covered cell ``C + δ`` (``δ ∈ {−1, 0,
-        1}^d``, ``δ ≠ 0``, across periodic sides) has ``δ_a = −1`` (``s = 0``) or every one ``+1``
-        (``s = 1``): a walk step (at most one cell per axis) from ``C`` that ends covered crosses
-        that face (:class:`~.crossings.Crossings`). −1 where no axis is such (a ring cell in a
-        concave corner of the region). Kept per ring cell in :attr:`leads` while the region stands:
-        made at every fill, its 3^d − 1 lookups cost the 3D fill 40 %."""
-        total = 0
-        lo = ti.Vector.zero(ti.i32, self.dim)
-        hi = ti.Vector.zero(ti.i32, self.dim)
-        for I in ti.grouped(ti.ndrange(*([3] * self.dim))):  # a loop, not unrolled: less code for the JIT to load
-            off = I - 1  # δ
-            moved = False
-            for a in ti.static(range(self.dim)):
-                moved = moved or off[a] != 0
-            if moved:
+    def near(self, e, C):
+        """The covered cells within one step of cell ``C`` of member ``e``: bit ``o`` set where cell
+        ``C + δ`` is covered (across periodic sides), ``o = Σ_a (δ_a + 1) 3^a`` for ``δ ∈ {−1, 0, 1}^d``,
+        ``δ ≠ 0`` (:func:`offset`). A walk step (at most one cell per axis) from ``C`` ends covered
+        exactly where it ends at a set offset (:class:`~.crossings.Crossings`). Kept per ring cell
+        in :attr:`near_list` while the region stands: its 3^d − 1 lookups made at every fill cost
+        the 3D fill 40 %."""
+        bits = ti.u32(0)
+        for o in range(3**self.dim):  # a loop, not unrolled: less code for the JIT to load
+            off = offset(o, self.dim)
+            if o != (3**self.dim - 1) // 2:  # δ = 0: the cell itself
                 D, ok = wrap(self.grid, C + off)
                 if ok:
                     if self.covered[self.member(e, D)] != 0:
-                        total += 1
-                        for a in ti.static(range(self.dim)):
-                            lo[a] += ti.cast(off[a] < 0, ti.i32)
-                            hi[a] += ti.cast(off[a] > 0, ti.i32)
-        out = -1
-        for b in ti.static(range(self.dim)):
-            a = ti.static(self.dim - 1 - b)  # the last assignment wins: the first axis
-            if total > 0 and lo[a] == total:
-                out = 2 * a
-            elif total > 0 and hi[a] == total:
-                out = 2 * a + 1
-        return out
+                        bits |= ti.u32(1) << ti.u32(o)
+        return bits

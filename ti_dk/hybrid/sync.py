@@ -74,9 +74,8 @@ class Coupling:
     def _walk(self, pool: ti.template(), cur, step, last):
         """Step 3 (one particle sub-step): walk, mark to keep what ends in the region, add to ΔN; on the
         ``last`` sub-step count the particles per covered cell. The slots appended since the last
-        compaction hold this sub-step's ghosts, which the fill walked, keeping those that entered
-        (:meth:`Sampler.sample`), and its holes: those are only accounted for, with no random numbers
-        drawn (they were 6 % of a 3D walk's slots)."""
+        compaction hold this sub-step's ghosts, which the fill walked, keeping only those that enter
+        (:meth:`Sampler.sample`): those are only accounted for, with no random numbers drawn."""
         self.clamped[None] += self.sampler.clamped[None]  # the clamped steps of the ghosts that entered
         for u in range(pool.units(cur)):
             e, U, lo, mid, hi = pool.split_unit(cur, u)
@@ -88,8 +87,7 @@ class Coupling:
             for p in range(mid, hi):
                 I = pool.index(cur, U, p)
                 ident = pool.pid[I]
-                # a hole the fill left (Sampler.sample) has birth word 0: no particle, dropped here
-                self._account(pool, I, e, ident, pool.x[I], ident[1] != ti.u32(0), 0, True, last)
+                self._account(pool, I, e, ident, pool.x[I], True, 0, True, last)
 
     @ti.func
     def _account(self, pool: ti.template(), I, e, ident, y, alive, clamped, ghost: ti.template(), last):

@@ -197,13 +197,18 @@ class Walker:
         """
         y = ti.Vector.zero(self.real, self.dim)
         for a in ti.static(range(self.dim)):
-            r = rng.uniform(bits[a], self.real)
-            b = self.real(tilt[a])
-            c = self.real(1.0) - self.real(0.5) * b
-            u = self.real(2.0) * r / (c + ti.sqrt(ti.max(c * c + self.real(2.0) * b * r, self.real(0.0))))
-            u = ti.min(u, self.real(1.0 - 2.0**-24))  # stay inside the cell whatever the rounding
-            y[a] = (self.real(C[a]) + u) * self.real(self.grid.dx[a])
+            y[a] = (self.real(C[a]) + self.in_cell_axis(bits[a], tilt[a])) * self.real(self.grid.dx[a])
         return y
+
+    @ti.func
+    def in_cell_axis(self, word, tilt):
+        """One axis of :meth:`in_cell`: the offset ``u ∈ (0, 1)`` from ``word`` with density
+        ``1 + tilt (u − ½)``."""
+        r = rng.uniform(word, self.real)
+        b = self.real(tilt)
+        c = self.real(1.0) - self.real(0.5) * b
+        u = self.real(2.0) * r / (c + ti.sqrt(ti.max(c * c + self.real(2.0) * b * r, self.real(0.0))))
+        return ti.min(u, self.real(1.0 - 2.0**-24))  # stay inside the cell whatever the rounding
 
     @ti.func
     def how_many(self, lam, bits_word):
