@@ -22,11 +22,12 @@ import taichi as ti
 from ..core.grid import Grid, wrap
 from .clustering import Box
 # tile side in cells where ``tile = 0``, by dimension (1D: the tags exactly), for a region from q̄ and
-# from each member's own density. From q̄, 2: the region holds 20 % (2D) to 60 % (3D, 300 per cell)
-# fewer particles than with 4, as the tiles at its edge reach less far into the dense side. Each
-# member's own, 4: its extensions come less often (sphere3d 128³: regrids 71 s with 4, 293 s with 2).
+# from each member's own density. From q̄, 2 in 2D (20 % fewer particles than with 4; 1 is no
+# cheaper there) and 1 in 3D (sphere3d 64³ at 300 per cell: half the particles of 2, 1.5× cheaper),
+# as the tiles at its edge reach less far into the dense side. Each member's own, 4: its extensions
+# come less often (sphere3d 128³: regrids 71 s with 4, 293 s with 2).
 # Measured side by side: benchmarks/tile_side.py, benchmarks/RESULTS.md.
-DEFAULT_SIDE = {"mean": {1: 1, 2: 2, 3: 2}, "member": {1: 1, 2: 4, 3: 4}}
+DEFAULT_SIDE = {"mean": {1: 1, 2: 2, 3: 1}, "member": {1: 1, 2: 4, 3: 4}}
 
 
 def side_for(tile: int, cells: tuple[int, ...], region_from: str = "mean") -> int:

@@ -232,7 +232,7 @@ class HybridKeys:
                       lo=0)
     region: str = key("choice", "how tagged cells are covered: tiles (each tile holding a tag, flagged on the device) "
                       "or boxes (Berger-Rigoutsos, the paper's)", _RG.region, choices=REGIONS)
-    tile: int = key("int", "tiles: side in cells (0: 1 in 1D; in 2D and 3D 2 from q̄, 4 from each member), at most the grid's largest side",
+    tile: int = key("int", "tiles: side in cells (0: 1 in 1D; from q̄ 2 in 2D and 1 in 3D; 4 from each member in 2D and 3D), at most the grid's largest side",
                     _RG.tile, lo=0)
     release: float = key("real", "tiles: a covered tile leaves only when all its cells (with the buffer) hold at "
                          "least this times threshold (hysteresis)", _RG.release, lo=1.0)
