@@ -172,10 +172,17 @@ class Region:
 
     @ti.kernel
     def count_low(self, spde: ti.template(), trigger: ti.f64, diagnosing: ti.template()):
+        """:meth:`count_low_here` in a launch of its own."""
+        self.count_low_here(spde, trigger, diagnosing)
+
+    @ti.func
+    def count_low_here(self, spde: ti.template(), trigger, diagnosing: ti.template()):
         """Count in :attr:`low` the uncovered cells of ``spde`` holding fewer than ``trigger`` particles
         (content ``q V_c``, or negative): an extension is due when any does (the hybrid's ``extend``;
         read only where one can be: a kernel's return value would sync the device every step). With
-        ``diagnosing`` also :meth:`SPDESolver.diagnose` in the same pass (one grid pass, not two)."""
+        ``diagnosing`` also :meth:`SPDESolver.diagnose` in the same pass (one grid pass, not two).
+        Called at a kernel's top level (its loop is then a parallel task): the particle step's
+        launch ends with it (:meth:`Coupling.cross`)."""
         if ti.static(diagnosing):
             spde.zero_diagnostics()
         due = 0

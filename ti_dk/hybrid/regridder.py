@@ -69,6 +69,11 @@ class Regridder:
         s.regions.count_low(s.spde, self.params.trigger, diagnosing)
         self._counted = True
 
+    def counted(self) -> None:
+        """:meth:`count_low`'s count (and the diagnostics) made by the step's own launch
+        (:meth:`Coupling.cross`)."""
+        self._counted = True
+
     def _extension_due(self) -> bool:
         """Whether an uncovered cell holds fewer than ``regrid_floor · threshold`` particles (counted
         at the end of the last step, or now where that step was a plain SPDE step or a state was

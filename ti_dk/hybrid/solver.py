@@ -102,7 +102,8 @@ class HybridSolver(RegionSolver):
         self.sampler = Sampler(spde, self.regions, self.walker, ghost_profile, substeps)
         self.coupling = Coupling(spde, self.regions, self.sampler, self.walker)
         c = self.coupling
-        self.scalars = Scalars([c.wall_inflow, c.p_inflow, c.clamped])  # the coupling's diagnostics, read together
+        # the SPDE's diagnostics and the coupling's, read together
+        self.scalars = Scalars(spde.scalars.fields + [c.wall_inflow, c.p_inflow, c.clamped])
         self.pool = pools.make(pool_layout, grid, self.ensemble, self.real)  # flat or pointer (pools.LAYOUTS)
         self.cur = 0  # the pool buffer holding the particles between steps
         self.regridder = Regridder(self, params, regrid_interval)  # the schedule, the regrids, their log
@@ -178,19 +179,22 @@ class HybridSolver(RegionSolver):
         lap("particles")
         self.spde.advance(n)
         lap("spde")
-        self._particle_steps(n)  # stage 3: the particle sub-steps and the synchronisation (steps 3, 4)
-        self.diagnose()
+        self._particle_steps(n)  # stage 3: the particle sub-steps and the synchronisation (steps 3, 4), diagnosed
         lap("particles")
 
     def _particle_steps(self, n: int) -> None:
         """Steps 3 and 4 after the SPDE's: S1, the k particle sub-steps of Δt/k (ghosts from q
-        interpolated in time), the synchronisation with the last (:meth:`Coupling.cross`)."""
+        interpolated in time), the synchronisation with the last, and the diagnostics
+        (:meth:`Coupling.cross`, which compacts a pool that compacts in place)."""
         c, k = self.coupling, self.substeps
         for s in range(k):
             if s > 0:
                 self._fill_ghosts(n * k + s, s / k, 1)
-            c.cross(self.pool, self.cur, n * k + s, int(s == 0), int(s == k - 1), self.n_ring, self.n_cover)
-            self.compact()
+            c.cross(self.pool, self.cur, n * k + s, int(s == 0), int(s == k - 1), self.n_ring, self.n_cover,
+                    self.regridder.params.trigger)
+            if not self.pool.in_place:
+                self.compact()
+        self.regridder.counted()
 
     def compact(self) -> None:
         """Keep the marked particles (in place, or in the other buffer: the pointer layout, which may
@@ -245,9 +249,11 @@ class HybridSolver(RegionSolver):
     def diagnostics(self) -> dict[str, float]:
         """The SPDE's diagnostics of the last step, with the particles' inflow at walls and
         reservoirs, clamped steps, the particle count and the last regrid's change of the total."""
-        d = self.spde.diagnostics()
+        values = self.scalars.read()  # one read, not two
+        k = self.spde.scalars.count
+        d = self.spde.diagnostics(values[:k])
         if self.n_cover:  # otherwise the last step was a plain SPDE step
-            wall, injected, clamped = self.scalars.read()  # one read, not three
+            wall, injected, clamped = values[k:]
             d["boundary_inflow"] = d["boundary_inflow"] + float(wall) + int(injected)
             d["clamped_steps"] = int(clamped)
         d["particles"] = pools.total(self.pool.kept)

@@ -154,9 +154,9 @@ class SPDESolver(Solver):
         """``q`` [particles / volume], ``V_c``, no region (:meth:`Solver.content`)."""
         return self.q, self.grid.cell_volume, None
 
-    def diagnostics(self) -> dict[str, float]:
-        """After the last step: mass, the smallest density, negative cells, the Dirichlet inflow."""
-        mass, q_min, negative, inflow = map(float, self.scalars.read())  # one read, not four
+    def diagnostics(self, values=None) -> dict[str, float]:
+        """After the last step: mass, the smallest density, negative cells, the Dirichlet inflow (``values``: read by a caller)."""
+        mass, q_min, negative, inflow = map(float, self.scalars.read() if values is None else values)  # one read
         return {"mass": mass, "min_density": q_min, "negative_cells": int(negative), "boundary_inflow": inflow,
                 "clamped_steps": 0}
 

@@ -37,6 +37,7 @@ class BlockPool:
         self.dim, self.cells = grid.dim, tuple(grid.cells)
         self.cell_ordered = True  # slots are grouped by block of cells: no sort needed for locality
         self.by_cell = True  # plans its room per block: fitted() takes each cell's need
+        self.in_place = False  # compacts into the other buffer, growing first where a block would overflow
         self.block_grid = g = BlockGrid(grid, ensemble)
         self.slot_bytes = self.dim * np.dtype(numpy_dtype(real)).itemsize + 8 + 1  # x, pid, keep
         fb = ti.FieldsBuilder()

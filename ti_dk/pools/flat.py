@@ -23,6 +23,7 @@ class ParticlePool:
         self.buffers, self.ids = buffers, ids
         self.cell_ordered = False  # slots are not grouped by cell (the hybrid sorts them at regrids)
         self.by_cell = False  # plans its room per member: grown(capacity(the most any member needs)) is fitted()
+        self.in_place = True  # compacts in place (compact_here), never growing: a kernel that marks may compact too
         self.blocks = -(-capacity // BLOCK)  # compaction blocks per member
         self.x = ti.Vector.field(dim, real, shape=(buffers, ensemble, capacity))  # positions [length]
         if ids:  # identity: two words keying the particle's random numbers (solver-defined)
@@ -182,6 +183,11 @@ class ParticlePool:
 
     @ti.kernel
     def compact(self, b: ti.i32):
+        """:meth:`compact_here` in a launch of its own."""
+        self.compact_here(b)
+
+    @ti.func
+    def compact_here(self, b):
         """Keep the slots of buffer ``b`` marked in :attr:`keep`, in place: with K of them marked,
         the marked slots below K stay where they are and the i-th unmarked slot below K (a hole,
         in slot order) takes the i-th marked slot at or past K; :attr:`kept` and ``n`` get K.
@@ -189,7 +195,8 @@ class ParticlePool:
         same on any thread count. A particle's random numbers are keyed on its identity, never
         on its slot, so the order changes no result; a step then moves the particles that left
         or entered the region, not all of them (a copy of every particle to the other buffer
-        cost the 3D hybrid 8 % of its step)."""
+        cost the 3D hybrid 8 % of its step). Called at a kernel's top level (its loops are then
+        parallel tasks): the hybrid's particle step compacts in its own launch (:attr:`in_place`)."""
         for u in range(self.units(b)):
             e, _, lo, hi = self.unit(b, u)
             c = 0
