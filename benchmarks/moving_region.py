@@ -25,7 +25,10 @@ tests, the region fixed or regridded every 3 steps, against the clamped walk's o
 void of the tests (20 × 20 periodic cells, 6 per cell, an empty slab 0.4 ≤ x ≤ 0.6, C = 1/16,
 80 steps) at threshold 5, its region regridded every 3 steps as the slab fills (from q̄ with the
 default tiles of 2, or from each member's own density), against the product of clamped walks.
-``blob2d_fixed`` and ``blob2d_tiles``: a dense blob in a thin gas on the same grid (``BLOB``: 1 per
+``cross2d_tiles`` and ``cross2d_fixed``: the 2D void's slab and the same slab along y, a void
+shaped as a cross (6 per cell elsewhere): its region has concave corners where the arms meet, whose
+ghost cells have covered neighbours beyond two faces, in flat SPDE surroundings; regridded every
+3 steps from q̄ (tiles of 2), or fixed. ``blob2d_fixed`` and ``blob2d_tiles``: a dense blob in a thin gas on the same grid (``BLOB``: 1 per
 cell far from it, 12 at its centre), threshold 5: the region covers all but the blob's core, an
 island of SPDE cells whose ghost cells sit in the region's concave corners (covered neighbours
 beyond two faces), with tiles of one cell: fixed, or regridded every 3 steps from q̄ as the blob
@@ -69,19 +72,23 @@ CASES = {
     "void_boxes": dict(regrid_interval=3, region="boxes"),
     "void2d_tiles": dict(regrid_interval=3),
     "void2d_member": dict(regrid_interval=3, **MEMBER),
+    "cross2d_tiles": dict(regrid_interval=3),
+    "cross2d_fixed": dict(regrid_interval=0),
     "blob2d_fixed": dict(regrid_interval=0, tile=1),
     "blob2d_tiles": dict(regrid_interval=3, tile=1),
 }
 BLOB = "1 + 12*exp(-((x-0.5)**2 + (y-0.5)**2) / (2*0.1**2))"  # blob2d: particles per cell
+CROSS = "6*(1 - step(x-0.4)*step(0.6-x))*(1 - step(y-0.4)*step(0.6-y))"  # cross2d: particles per cell
 
 
 def trap_scene(case: str, members: int):
     """The trap of the module docstring, run as ``case``; or (``void_*``) the authors' void of
     ``tests/hybrid/test_solver.py`` (100 periodic cells, 12.5 per cell, cells 40–59 empty, C = 1/8,
     200 steps), with its region fixed or regridded every 3 steps."""
-    if case.startswith("blob2d"):  # an SPDE island in a particle region: concave corners
-        return ti_dk.load_scene("void1d", method="hybrid", init="expression", density=BLOB, cells=[20, 20], C=0.0625,
-                                t_end=0.0125, threshold=5, seed=2, output_times=[], ensemble=members, **CASES[case])
+    if case.startswith(("blob2d", "cross2d")):  # concave corners: an SPDE island, a cross-shaped void
+        return ti_dk.load_scene("void1d", method="hybrid", init="expression", cells=[20, 20], C=0.0625,
+                                density=BLOB if case.startswith("blob") else CROSS, t_end=0.0125, threshold=5,
+                                seed=2, output_times=[], ensemble=members, **CASES[case])
     if case.startswith("void2d"):  # the 2D void of the tests, its region moving (threshold 5 at 6 per cell)
         return ti_dk.load_scene("void1d", method="hybrid", cells=[20, 20], ppc=6, void_lo=0.4, void_hi=0.6,
                                 C=0.0625, t_end=0.0125, threshold=5, seed=2, output_times=[], ensemble=members,
@@ -100,7 +107,7 @@ def trap_scene(case: str, members: int):
 def exact_mean(case: str, scene) -> np.ndarray:
     """Each cell's exact expected count at t_end: N times the clamped walk's stationary shares (the
     trap), or the clamped walk's own transition from the start (the void)."""
-    if case.startswith(("void", "blob")):
+    if case.startswith(("void", "blob", "cross")):
         lengths = (1.0,) * len(scene.grid.cells)
         return theory.particle_counts_periodic(scene.initial_ppc, lengths, scene.dt, scene.n_steps)["mean"]
     return N * trap_walk_shares(CELLS, 1.0, scene.dt, 1.0 / SIGMA**2, 0.5)
