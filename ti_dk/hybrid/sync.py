@@ -57,16 +57,13 @@ class Coupling:
     @ti.kernel
     def cross(self, pool: ti.template(), cur: ti.i32, step: ti.i32, first: ti.i32, last: ti.i32, n_ring: ti.i32,
               n_cover: ti.i32, trigger: ti.f64):
-        """One particle sub-step in one launch, its parallel loops run in order (each starts Taichi's
-        CPU thread pool: ≈ 80 µs on a 2-core VM): the walk (:meth:`_walk`), the entry cap
-        (:meth:`_cap`, with S1 on the ``first`` sub-step), the synchronisation (:meth:`_sync`, on the
-        ``last``: it reads counts, not slots), the compaction of a pool that compacts in place
-        (:meth:`ParticlePool.compact_here`; another compacts after the launch) and the SPDE's
-        diagnostics with the count of uncovered cells below ``trigger`` (:meth:`Region.count_low_here`):
-        three launches a step fewer."""
+        """One particle sub-step in one launch (parallel loops run in order): the walk (:meth:`_walk`),
+        the entry cap (:meth:`_cap`, with S1 on the ``first`` sub-step), the synchronisation
+        (:meth:`_sync`, on the ``last``), the compaction of a pool that compacts in place
+        (:meth:`ParticlePool.compact_here`; another compacts after the launch), the SPDE's diagnostics
+        with the uncovered cells below ``trigger`` (:meth:`Region.count_low_here`)."""
         if first:
-            self.clamped[None] = 0
-            self.p_inflow[None] = 0
+            self.clamped[None], self.p_inflow[None] = 0, 0
         self._walk(pool, cur, step, last)
         self._cap(pool, cur, step, first, last, n_ring)
         if last:
