@@ -4,7 +4,8 @@ import pytest
 import taichi as ti
 
 from ti_dk import load_scene
-from ti_dk.core.grid import DIRICHLET, INTERIOR, NEUMANN, PERIODIC, Grid, across, cell_of, exclusive_scan, face_kind, numpy_dtype
+from ti_dk.core.grid import (DIRICHLET, INTERIOR, NEUMANN, PERIODIC, SCAN_BLOCK, Grid, across, block_scan, cell_of,
+                            exclusive_scan, face_kind, numpy_dtype)
 
 
 def test_geometry_of_an_anisotropic_2d_grid():
@@ -107,3 +108,19 @@ def test_exclusive_scan_of_one_row_leaves_the_others():
     want = counts.copy()
     want[1, :12] = np.concatenate([[0], np.cumsum(counts[1, :11])])
     assert np.array_equal(a.to_numpy(), want) and total[None] == counts[1, :12].sum()
+
+
+@pytest.mark.parametrize("n", [1, SCAN_BLOCK - 1, SCAN_BLOCK, SCAN_BLOCK + 1, 3 * SCAN_BLOCK + 17])
+def test_block_scan_is_one_serial_pass(n):
+    counts = np.random.default_rng(n).integers(0, 9, size=n).astype(np.int32)
+    a, sums = ti.field(ti.i32, shape=n), ti.field(ti.i32, shape=-(-n // SCAN_BLOCK))
+    total = ti.field(ti.i32, shape=2)
+    a.from_numpy(counts)
+
+    @ti.kernel
+    def scan():
+        block_scan(a, sums, total, 1)
+
+    scan()
+    assert np.array_equal(a.to_numpy(), np.concatenate([[0], np.cumsum(counts)[:-1]]))
+    assert total[1] == counts.sum() and total[0] == 0

@@ -36,7 +36,8 @@ _P, _D, _N = (PERIODIC, PERIODIC), (DIRICHLET, DIRICHLET), (NEUMANN, NEUMANN)
 @pytest.mark.parametrize("cells,boundary", [((7, 6), (_P, _P)), ((7, 6), ((DIRICHLET, NEUMANN), _P)),
                                             ((7, 6), (_D, (NEUMANN, DIRICHLET))), ((9,), (_D,)), ((9,), (_P,)),
                                             ((5, 4, 6), ((DIRICHLET, NEUMANN), _P, (NEUMANN, DIRICHLET))),
-                                            ((5, 4, 6), (_P, _P, _P))])
+                                            ((5, 4, 6), (_P, _P, _P)),
+                                            ((12, 10, 5), (_P, _D, _N))])  # rows over several scan blocks
 def test_ring_and_lists_match_the_definition(cells, boundary):
     d = len(cells)
     grid = Grid(cells, (1.0,) * d, boundary, ((2.0, 3.0),) * d)

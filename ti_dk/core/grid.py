@@ -191,6 +191,37 @@ def exclusive_scan(a: ti.template(), e, n):
     return total
 
 
+SCAN_BLOCK = 256  # entries one thread scans in block_scan (its serial part is this many times shorter)
+
+
+@ti.func
+def block_scan(a: ti.template(), sums: ti.template(), total: ti.template(), slot: ti.template()):
+    """Replace the 1-axis i32 field ``a`` by its exclusive prefix sums and put their total in
+    ``total[slot]``, by blocks: each block of :data:`SCAN_BLOCK` entries scanned by one thread, in
+    parallel; the block totals (``sums``, i32 scratch of ⌈len(a) / SCAN_BLOCK⌉) scanned by one;
+    each block's offset added, in parallel. The result of one serial pass (integers), with a serial
+    part SCAN_BLOCK times shorter: a GPU runs a serial loop on one of its threads. Call it at a
+    kernel's top level (its loops are then parallel tasks)."""
+    N, B = ti.static(a.shape[0], SCAN_BLOCK)
+    for b in range((N + B - 1) // B):
+        t = 0
+        for k in range(b * B, ti.min(b * B + B, N)):
+            c = a[k]
+            a[k] = t
+            t += c
+        sums[b] = t
+    ti.loop_config(serialize=True)
+    for _ in range(1):
+        t = 0
+        for b in range((N + B - 1) // B):
+            c = sums[b]
+            sums[b] = t
+            t += c
+        total[slot] = t
+    for k in range(N):
+        a[k] += sums[k // B]
+
+
 INTERIOR = -1  # face_kind of a face that is not on the boundary
 
 

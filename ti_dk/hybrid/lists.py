@@ -5,7 +5,7 @@ import math
 
 import taichi as ti
 
-from ..core.grid import DIRICHLET, column_hit, exclusive_scan, prefixed
+from ..core.grid import DIRICHLET, SCAN_BLOCK, block_scan, column_hit, prefixed
 
 
 @ti.data_oriented
@@ -15,7 +15,7 @@ class CellLists:
     Both lists hold flat (C-order, member-first) indices, ascending, the order of
     ``np.flatnonzero``, so a loop over them visits cells in a fixed order whatever the thread count:
     each row along the last axis counts its cells, one serial task scans the counts of every row
-    of every member (:func:`~ti_dk.core.grid.exclusive_scan`), and each row writes its cells from
+    of every member by blocks (:func:`~ti_dk.core.grid.block_scan`), and each row writes its cells from
     its offset. A cell of the padded grid (one ghost layer a side) is a ghost cell where it is not
     covered and a covered cell lies within Chebyshev distance 1 of it (across periodic sides); beyond
     the grid only beyond a Dirichlet side (a reservoir cell), and never beyond two sides at once.
@@ -26,8 +26,9 @@ class CellLists:
         E, n, padded = region.ensemble, region.n, region.padded
         self.ring = ti.field(ti.u8, shape=(E, *padded))  # 1 where the padded cell is a ghost cell
         # per row along the last axis (member first): its ghost cells, then where the first lies in the list
-        self.ring_rows = ti.field(ti.i32, shape=(1, E * math.prod(padded[:-1])))
-        self.cover_rows = ti.field(ti.i32, shape=(1, E * math.prod(n[:-1])))  # likewise, covered cells
+        self.ring_rows = ti.field(ti.i32, shape=E * math.prod(padded[:-1]))
+        self.cover_rows = ti.field(ti.i32, shape=E * math.prod(n[:-1]))  # likewise, covered cells
+        self.sums = ti.field(ti.i32, shape=-(-self.ring_rows.shape[0] // SCAN_BLOCK))  # block_scan's scratch
         self.sizes = ti.field(ti.i32, shape=2)  # entries of ring_list and cover_list
 
     def make(self) -> tuple[int, int]:
@@ -80,18 +81,16 @@ class CellLists:
                 self.ring[prefixed(R[0], C + 1, d)] = ti.u8(g)
                 c += ti.cast(g, ti.i32)
                 before, here = here, after
-            self.ring_rows[0, self._row(R, P)] = c
+            self.ring_rows[self._row(R, P)] = c
         for R in ti.grouped(ti.ndrange(r.ensemble, *n[:-1])):  # covered cells per row
             c = 0
             for j in range(n[d - 1]):
                 c += ti.cast(covered[prefixed(R[0], ti.Vector([R[a + 1] for a in ti.static(range(d - 1))] + [j]), d)] != 0, ti.i32)
-            self.cover_rows[0, self._row(R, n)] = c
-        ti.loop_config(serialize=True)  # the scans (grid.exclusive_scan: a serial task)
-        for _ in range(1):
-            self.sizes[0] = exclusive_scan(self.ring_rows, 0, self.ring_rows.shape[1])
-            self.sizes[1] = exclusive_scan(self.cover_rows, 0, self.cover_rows.shape[1])
+            self.cover_rows[self._row(R, n)] = c
+        block_scan(self.ring_rows, self.sums, self.sizes, 0)
+        block_scan(self.cover_rows, self.sums, self.sizes, 1)
         for R in ti.grouped(ti.ndrange(r.ensemble, *P[:-1])):  # each row's ghost cells from its offset, with their covered neighbours
-            i = self.ring_rows[0, self._row(R, P)]
+            i = self.ring_rows[self._row(R, P)]
             base = self._row(R, P) * P[d - 1]  # the flat index of the row's first cell
             for j in range(P[d - 1]):
                 Q = ti.Vector([R[a] for a in ti.static(range(d))] + [j])
@@ -101,7 +100,7 @@ class CellLists:
                     r.near_list[i] = r.near(R[0], C)
                     i += 1
         for R in ti.grouped(ti.ndrange(r.ensemble, *n[:-1])):  # each row's covered cells from its offset
-            i = self.cover_rows[0, self._row(R, n)]
+            i = self.cover_rows[self._row(R, n)]
             base = self._row(R, n) * n[d - 1]
             for j in range(n[d - 1]):
                 if covered[prefixed(R[0], ti.Vector([R[a + 1] for a in ti.static(range(d - 1))] + [j]), d)] != 0:
