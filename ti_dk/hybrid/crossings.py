@@ -6,7 +6,7 @@ import math
 import taichi as ti
 
 from ..core import rng
-from ..core.grid import NEUMANN, PERIODIC, cell_of
+from ..core.grid import NEUMANN, PERIODIC, cell_of, offset
 from ..methods.particles import Walker
 from .region import Region
 
@@ -138,10 +138,9 @@ class Crossings:
     @ti.func
     def _weight(self, o, lo, stay, hi):
         """The probability ``∏_a p_a(δ_a)`` of ending at offset ``o`` (:func:`~ti_dk.core.grid.offset`)."""
-        w = 1.0
+        w, off = 1.0, offset(o, self.dim)
         for a in ti.static(range(self.dim)):
-            digit = (o // 3**a) % 3
-            w *= ti.select(digit == 0, lo[a], ti.select(digit == 1, stay[a], hi[a]))
+            w *= ti.select(off[a] < 0, lo[a], ti.select(off[a] == 0, stay[a], hi[a]))
         return w
 
     @ti.func
@@ -185,41 +184,29 @@ class Crossings:
                               ti.math.uvec2(self.key[0], self.key[1]))
 
     @ti.func
-    def _attempt(self, e, id0, step, a: ti.template(), t, first):
-        """The words of attempt ``t`` along axis ``a`` (:meth:`_words` at ``1024 a + t``; ``first``: those at 0)."""
-        r = first
-        if ti.static(a > 0):
-            r = self._words(e, id0, step, 1024 * a + t)
-        elif t > 0:
-            r = self._words(e, id0, step, t)
-        return r
-
-    @ti.func
     def entrant(self, e, C, id0, step, near, tilt, lo, stay, hi, total):
         r"""Entrant ``id0`` (identity) of cell ``C`` (one of :meth:`count`'s): its position after its walk
         and its clamped steps. Its offset is drawn among the covered ones ``near`` with
         probabilities ∝ :meth:`_weight` (``total``: their sum), then each axis given its part of the
-        offset: across a face by :meth:`_cross`, within the cell by :meth:`_stay` (``first``: the words
-        of ``t = 0``, made once). Axis ``a`` uses
+        offset: across a face by :meth:`_cross`, within the cell by :meth:`_stay`. Axis ``a`` uses
         counters ``(id, step, member, SAMPLE_ENTRY + t)``, ``t`` from ``1024 a``; the offset the fourth
         word of ``t = 0``."""
-        first = self._words(e, id0, step, 0)  # the offset's word, and axis 0's first attempt
-        _total, chosen = self._pick(near, lo, stay, hi, rng.uniform(first[3], ti.f64) * total)
+        _total, chosen = self._pick(near, lo, stay, hi, rng.uniform(self._words(e, id0, step, 0)[3], ti.f64) * total)
+        off = offset(chosen, self.dim)
         y = ti.Vector.zero(self.real, self.dim)
         clamped = 0
         for a in ti.static(range(self.dim)):
-            digit = (chosen // 3**a) % 3
             ya, c = self.real(0.0), 0
-            if digit == 1:
-                ya, c = self._stay(e, C, id0, step, a, tilt, first)
+            if off[a] == 0:
+                ya, c = self._stay(e, C, id0, step, a, tilt)
             else:
-                ya, c = self._cross(e, C, id0, step, a, digit // 2, tilt, first)
+                ya, c = self._cross(e, C, id0, step, a, ti.cast(off[a] > 0, ti.i32), tilt)
             y[a] = ya
             clamped += c
         return y, clamped
 
     @ti.func
-    def _cross(self, e, C, id0, step, a: ti.template(), side, tilt, first):
+    def _cross(self, e, C, id0, step, a: ti.template(), side, tilt):
         r"""Axis ``a`` of an entrant of cell ``C`` that crosses face ``side``: its coordinate after the
         step, and 1 if the step was clamped. The pair (distance ``v`` to the face, step ``w``) is drawn
         from its law given a crossing, ``∝ (c0 + c1 v) φ(z) 1[v < w(z)]``: ``z`` from the Rayleigh
@@ -230,7 +217,7 @@ class Crossings:
         top = c0 + 0.5 * ti.max(c1, 0.0)
         w, v, t, done = 0.0, 0.0, 0, False
         while not done and t < 1000:
-            r = self._attempt(e, id0, step, a, t, first)
+            r = self._words(e, id0, step, 1024 * a + t)
             z = ti.sqrt(-2.0 * ti.log(rng.uniform(r[0], ti.f64)))
             w = ti.min(sig * z, 1.0)
             done = rng.uniform(r[1], ti.f64) * top * ti.max(sig * z, 1.0) < c0 + 0.5 * c1 * w
@@ -249,7 +236,7 @@ class Crossings:
         return self.real(x), ti.cast(w >= 1.0, ti.i32)
 
     @ti.func
-    def _stay(self, e, C, id0, step, a: ti.template(), tilt, first):
+    def _stay(self, e, C, id0, step, a: ti.template(), tilt):
         """Axis ``a`` of an entrant of cell ``C`` whose step ends in its own cell along it (a Neumann
         wall's reflection included): a position from the profile and a step of the walk
         (:meth:`Walker.axis_step`), drawn again until they end so; its coordinate, and 1 if the step
@@ -257,7 +244,7 @@ class Crossings:
         h = ti.static(self.grid.dx[a])
         ya, clamped, t, done = self.real(0.0), 0, 0, False
         while not done and t < 1000:
-            r = self._attempt(e, id0, step, a, t, first)
+            r = self._words(e, id0, step, 1024 * a + t)
             x = (self.real(C[a]) + self.walker.in_cell_axis(r[0], tilt[a])) * self.real(h)
             z, alive, c, _raw = self.walker.axis_step(x, a, r[1], self.real(0.0))
             done = alive and cell_of(z, self.real(h), self.n[a]) == C[a]

@@ -14,9 +14,9 @@ class CellLists:
 
     Both lists hold flat (C-order, member-first) indices, ascending, the order of
     ``np.flatnonzero``, so a loop over them visits cells in a fixed order whatever the thread count:
-    each row along the last axis counts its cells, one serial task scans the counts of every row
-    of every member by blocks (:func:`~ti_dk.core.grid.block_scan`), and each row writes its cells from
-    its offset. A cell of the padded grid (one ghost layer a side) is a ghost cell where it is not
+    each row along the last axis counts its cells, the counts of every row of every member are
+    scanned by blocks (:func:`~ti_dk.core.grid.block_scan`), and each row writes its cells from its
+    offset. A cell of the padded grid (one ghost layer a side) is a ghost cell where it is not
     covered and a covered cell lies within Chebyshev distance 1 of it (across periodic sides); beyond
     the grid only beyond a Dirichlet side (a reservoir cell), and never beyond two sides at once.
     """
@@ -85,7 +85,7 @@ class CellLists:
         for R in ti.grouped(ti.ndrange(r.ensemble, *n[:-1])):  # covered cells per row
             c = 0
             for j in range(n[d - 1]):
-                c += ti.cast(covered[prefixed(R[0], ti.Vector([R[a + 1] for a in ti.static(range(d - 1))] + [j]), d)] != 0, ti.i32)
+                c += ti.cast(covered[ti.Vector([R[a] for a in ti.static(range(d))] + [j])] != 0, ti.i32)
             self.cover_rows[self._row(R, n)] = c
         block_scan(self.ring_rows, self.sums, self.sizes, 0)
         block_scan(self.cover_rows, self.sums, self.sizes, 1)
@@ -103,6 +103,6 @@ class CellLists:
             i = self.cover_rows[self._row(R, n)]
             base = self._row(R, n) * n[d - 1]
             for j in range(n[d - 1]):
-                if covered[prefixed(R[0], ti.Vector([R[a + 1] for a in ti.static(range(d - 1))] + [j]), d)] != 0:
+                if covered[ti.Vector([R[a] for a in ti.static(range(d))] + [j])] != 0:
                     r.cover_list[i] = base + j
                     i += 1
