@@ -8,6 +8,7 @@ from ti_dk import load_scene
 from ti_dk.control.registry import make_solver
 from ti_dk.core.traffic import counted
 from ti_dk.hybrid import clustering
+from ti_dk.scene.estimates import hybrid_slots
 
 from ..helpers import covered_nonnegative, run_steps
 
@@ -160,10 +161,13 @@ def test_a_step_reads_back_a_few_counts(region_from):
     # slot count, and the end-of-step low-cell count only where an extension can be (regrid_floor > 0),
     # and writes nothing; a regrid reads the flag's three counts, and where the region changed the
     # move's sums (Tally), the sampler's two counts and the lists' lengths: never the flags or the
-    # density; over the run, at most 64 bytes a step on average
+    # density; over the run, at most 64 bytes a step on average. The pool was planned before the run
+    # (estimates.hybrid_slots, or more for a first region that needs more) and never grows: a new pool
+    # would compile the kernels that take it anew
     scene = load_scene("ellipse2d", cells=[48, 48], compare="none", seed=4, region_from=region_from,
                        regrid_floor=0.6 if region_from == "member" else 0)
     s = _solver(scene)
+    pool = s.pool
     rows = []
     with counted() as t:
         for n in range(150):
@@ -176,3 +180,4 @@ def test_a_step_reads_back_a_few_counts(region_from):
     assert read[regrid == 0].max() == (16 if region_from == "member" else 8) and written[regrid == 0].max() == 0
     assert read.max() <= 96 and written.max() == 0  # a few counts (76 bytes): nothing grid- or tile-sized
     assert read.mean() <= 64
+    assert s.pool is pool and pool.capacity >= hybrid_slots(scene)

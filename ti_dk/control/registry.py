@@ -13,6 +13,7 @@ from ..hybrid.solver import HybridSolver
 from ..methods.fv import SPDESolver
 from ..methods.particles import ParticleSolver
 from ..methods.solver import Solver
+from ..scene.estimates import hybrid_slots
 from ..scene.schema import Scene
 
 Builder = Callable[[Scene, np.ndarray, dict], Solver]  # (scene, particles per cell, common arguments) → solver
@@ -45,7 +46,7 @@ def _particle(scene: Scene, ppc: np.ndarray, common: dict) -> ParticleSolver:
 def _hybrid(scene: Scene, ppc: np.ndarray, common: dict) -> HybridSolver:
     spde = _spde(ppc, common, gaussian=scene.hybrid.spde == "gaussian", track_mean=scene.hybrid.ghost_profile == "mean" or scene.hybrid.region_from == "mean")
     solver = HybridSolver(spde, scene.hybrid.regrid, scene.hybrid.regrid_interval, scene.hybrid.ghost_profile,
-                          scene.hybrid.particle_substeps, scene.hybrid.pool_layout)
+                          scene.hybrid.particle_substeps, scene.hybrid.pool_layout, hybrid_slots(scene))
     solver.initialize()
     return solver
 

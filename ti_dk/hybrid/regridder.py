@@ -214,7 +214,7 @@ class Regridder:
             grown = s.regions.grown(target)
             s.pool = s.pool.fitted(self.tally.per_cell(s.spde), grown | s.regions.mask())
         else:
-            s.pool = s.pool.grown(pools.capacity(most))
+            s.pool = s.pool.grown(pools.capacity(most), s.slots)
         sort = sort and not s.pool.cell_ordered
         s.sampler.cover(s.pool, s.cur, n * s.substeps, s.tilt_on(n), s.coupling.count, self.tally.target,
                         int(sort or gone > 0))

@@ -88,10 +88,13 @@ class HybridSolver(RegionSolver):
         Particle sub-steps per SPDE step.
     pool_layout : str
         Where the particles are stored: ``flat`` or ``pointer`` (:data:`ti_dk.pools.LAYOUTS`).
+    slots : int
+        Slots per member a flat pool plans for (:func:`~ti_dk.scene.estimates.hybrid_slots`), made
+        when the first region is (more, if that region needs more).
     """
 
     def __init__(self, spde: SPDESolver, params: clustering.RegridParams, regrid_interval: int,
-                 ghost_profile: str = "mean", substeps: int = 1, pool_layout: str = "flat"):
+                 ghost_profile: str = "mean", substeps: int = 1, pool_layout: str = "flat", slots: int = 1):
         grid = spde.grid
         self.profile, self.substeps = ghost_profile, substeps
         self.spde, self.grid, self.dt, self.ensemble, self.real = spde, grid, spde.dt, spde.ensemble, spde.real
@@ -105,6 +108,7 @@ class HybridSolver(RegionSolver):
         # the SPDE's diagnostics and the coupling's, read together
         self.scalars = Scalars(spde.scalars.fields + [c.wall_inflow, c.p_inflow, c.clamped])
         self.pool = pools.make(pool_layout, grid, self.ensemble, self.real)  # flat or pointer (pools.LAYOUTS)
+        self.slots = slots  # a flat pool's slots per member from the first region on (estimates.hybrid_slots)
         self.cur = 0  # the pool buffer holding the particles between steps
         self.regridder = Regridder(self, params, regrid_interval)  # the schedule, the regrids, their log
         self.timing = {"spde": 0.0, "particles": 0.0, "regrid": 0.0}  # seconds spent in each part

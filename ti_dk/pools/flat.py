@@ -43,14 +43,15 @@ class ParticlePool:
         slot = self.dim * np.dtype(numpy_dtype(self.real)).itemsize + 8 * self.ids
         return self.ensemble * self.capacity * (self.buffers * slot + 5 * self.ids)  # keep, tail
 
-    def grown(self, capacity: int) -> "ParticlePool":
+    def grown(self, capacity: int, planned: int = 0) -> "ParticlePool":
         """This pool, or (when ``capacity`` exceeds its own) a new one holding the same particles,
-        with a quarter more slots than asked and at least twice the old: every new pool recompiles
-        the kernels that take it (seconds), so a region that drifts between regrids should not
-        grow it each time."""
+        with a quarter more slots than asked, at least twice the old and at least ``planned``
+        (the hybrid's first region makes its pool so: :func:`~ti_dk.scene.estimates.hybrid_slots`):
+        every new pool recompiles the kernels that take it (seconds), so a region that drifts
+        between regrids should not grow it each time."""
         if capacity <= self.capacity:
             return self
-        capacity = max(capacity + capacity // 4, 2 * self.capacity)
+        capacity = max(capacity + capacity // 4, 2 * self.capacity, planned)
         new = ParticlePool(self.ensemble, capacity, self.dim, self.real, self.buffers, self.ids)
         new.load(self.x.to_numpy(), self.pid.to_numpy() if self.ids else None, self.n.to_numpy())
         new.kept.from_numpy(self.kept.to_numpy())

@@ -45,12 +45,23 @@ def _ppc_max(scene: Scene) -> float:
     return max(ppc + [Grid.from_scene(scene).reservoir_ppc_max])
 
 
+def hybrid_slots(scene: Scene) -> int:
+    """The slots per member the hybrid's flat pool is made with, at its first region (or a quarter
+    more than that region needs, where more; :meth:`~ti_dk.pools.ParticlePool.grown`):
+    :func:`~ti_dk.pools.capacity` of the threshold density (or the largest density, if lower) in
+    every cell. A region holds the cells below the threshold and its buffer: this bounds it but
+    for a buffer of dense cells around a region that fills much of the grid. A pool that grows is
+    a new one, and the kernels that take it compile anew (seconds; rare, and amortised by
+    doubling); planned so, the pool of ``ellipse2d`` never grows in its run (tested)."""
+    return capacity(min(scene.hybrid.threshold, _ppc_max(scene)) * math.prod(scene.grid.cells))
+
+
 def memory_estimate(scene: Scene) -> dict[str, float]:
     """Bytes a run needs, by part: solver fields, particles, host copies, statistics, histogram,
     structure factor.
 
     Rough (within a factor of about 2) but computed before anything is allocated; the hybrid's
-    particle pool grows with its region and is counted for the threshold density everywhere.
+    particle pool is counted as planned (:func:`hybrid_slots`).
     """
     cells = math.prod(scene.grid.cells)
     mc = scene.method.ensemble * cells  # member-cells
@@ -61,9 +72,8 @@ def memory_estimate(scene: Scene) -> dict[str, float]:
             est["fields"] += mc * (1 + scene.grid.dim) * real
         if method == "hybrid":
             est["fields"] += mc * 32  # region, ghost ring, cell lists, counts
-            # two buffers of slots for every member at the threshold density everywhere
-            per_member = capacity(min(scene.hybrid.threshold, _ppc_max(scene)) * cells)
-            est["particles"] += 2 * scene.method.ensemble * per_member * (scene.grid.dim * real + 8)
+            # two buffers of slots for every member, as planned (hybrid_slots), and a keep flag and a tail rank
+            est["particles"] += scene.method.ensemble * hybrid_slots(scene) * (2 * (scene.grid.dim * real + 8) + 5)
         if method == "particle":
             est["fields"] += mc * 4
             # with reservoirs: ids (8 bytes), a keep flag and a tail rank (the pool compacts in place)
