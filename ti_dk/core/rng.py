@@ -48,15 +48,17 @@ def seed_key(seed: int) -> tuple[int, int]:
     return tuple(w - 2**32 if w >= 2**31 else w for w in (seed & 0xFFFFFFFF, seed >> 32))
 
 
-def lanes(dim: int, flux: bool = False) -> int:
+def lanes(dim: int, flux: bool = False, alone: bool = False) -> int:
     """Philox calls one iteration of a walk or (``flux``) flux loop makes before it uses them, in
     ``dim`` dimensions: 2 in 3D, where a counter serves one particle or cell, and 1 in 1D and 2D,
-    where it already serves 2–4, except the 2D flux loop: 2. A call is a chain of dependent
-    multiplies, so with one at a time the loop waits on it, and two independent ones run side by
-    side in the core. That pays in 3D (walk and flux pass) and in the 2D flux loop, which goes
-    along rows; elsewhere in 1D and 2D it gains nothing or loses, and every lane is a copy of the
-    loop body to compile."""
-    return 2 if dim == 3 or (flux and dim == 2) else 1
+    where it already serves 2–4, except the 2D flux loop and a walk whose particles each make
+    their own call (``alone``: the hybrid's, whose slots are not in identity order): 2. A call is
+    a chain of dependent multiplies, so with one at a time the loop waits on it, and two
+    independent ones run side by side in the core. That pays in 3D (walk and flux pass), in the
+    2D flux loop, which goes along rows, and in the hybrid's 2D walk (8 % of that kernel,
+    benchmarks/RESULTS.md); elsewhere in 1D and 2D it gains nothing or loses, and every lane is
+    a copy of the loop body to compile."""
+    return 2 if dim == 3 or (dim == 2 and (flux or alone)) else 1
 
 
 def device_key(key: tuple[int, int], member0: int = 0) -> ti.Field:

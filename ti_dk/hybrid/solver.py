@@ -99,7 +99,8 @@ class HybridSolver(RegionSolver):
         self.profile, self.substeps = ghost_profile, substeps
         self.spde, self.grid, self.dt, self.ensemble, self.real = spde, grid, spde.dt, spde.ensemble, spde.real
         self.dim, self.n = grid.dim, grid.cells
-        self.walker = Walker(grid, spde.dt / substeps, spde.real, spde.key, spde.member0)  # one particle sub-step
+        # one particle sub-step; each particle makes its own Philox call (its slots are not in identity order)
+        self.walker = Walker(grid, spde.dt / substeps, spde.real, spde.key, spde.member0, alone=True)
         self.regions = Region(grid, self.ensemble, params)
         spde.replaced_in(self.regions.covered)  # covered cells take their counts at each sync (step 4)
         self.sampler = Sampler(spde, self.regions, self.walker, ghost_profile, substeps)

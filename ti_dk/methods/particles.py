@@ -25,7 +25,9 @@ class Walker:
     One Philox-4x32-10 counter serves the ``G = 4 // dim`` particles ``id0 = G·k … G·k + G − 1``
     (4 in 1D, 2 in 2D, 1 in 3D): particle ``id0`` takes words ``(id0 mod G)·dim + a``, so a loop
     that holds consecutive identities together (:meth:`ParticleSolver._walk`) makes one call
-    for ``G`` particles, and a particle walked alone (:meth:`move`) draws the same numbers.
+    for ``G`` particles, and a particle walked alone (:meth:`move`) draws the same numbers. With
+    ``alone`` (a loop whose particles each make their own call: the hybrid's) an iteration moves
+    :func:`rng.lanes` particles, their calls side by side.
 
     The drift of an external potential U (``grid.potential``; Euler–Maruyama, ∇U at the position
     before the step, the whole axis step clamped so a particle still moves at most one cell) is
@@ -35,12 +37,13 @@ class Walker:
     grid (nearest lattice point), one cell beyond each side for the reservoirs.
     """
 
-    def __init__(self, grid: Grid, dt: float, real, key: tuple[int, int], member0: int = 0):
+    def __init__(self, grid: Grid, dt: float, real, key: tuple[int, int], member0: int = 0, alone: bool = False):
         self.grid, self.dt, self.real = grid, dt, real
         self.member0 = member0  # global index of member 0 (random numbers are keyed on the global index)
         self.dim = grid.dim
         self.group = max(1, 4 // self.dim)  # consecutive identities sharing one Philox counter
-        self.lanes = rng.lanes(self.dim)  # counter groups (or particles) a walk loop iteration moves
+        # counter groups (or, ``alone``, particles each with its own Philox call) a walk loop iteration moves
+        self.lanes = rng.lanes(self.dim, alone=alone)
         self.key = key  # the Philox key of the run (rng.seed_key of its seed)
         rng.prepare()
         self.drifting = grid.potential is not None  # the drift −½∇U Δt is compiled in
