@@ -82,6 +82,15 @@ def numpy_dtype(real):
     return np.float32 if real == ti.f32 else np.float64
 
 
+def light() -> bool:
+    """Whether a *light* parallel loop (one whose work takes less than waking the thread pool) runs
+    as a serial task instead (``ti.loop_config(serialize=ti.static(light()))``): on the CPU, where
+    every parallel loop of a launch wakes the pool's threads and waits for them, about 25 µs on
+    the project's 2 cores whatever the loop's length (an empty one too); a serial task costs
+    about 1 µs. A GPU keeps them parallel. Evaluated when a kernel compiles (after ``ti.init``)."""
+    return ti.lang.impl.current_cfg().arch == ti.cpu
+
+
 def row_spread(rows: int) -> int:
     """How many iterations a parallel loop over ``rows`` rows should give each row (one works, the
     others are empty), so that every CPU thread gets rows (1 on other backends and on one thread).

@@ -3,7 +3,7 @@
 import numpy as np
 import taichi as ti
 
-from ..core.grid import exclusive_scan, numpy_dtype
+from ..core.grid import exclusive_scan, light, numpy_dtype
 from .slots import BLOCK, canonical, capacity
 
 
@@ -198,6 +198,7 @@ class ParticlePool:
         or entered the region, not all of them (a copy of every particle to the other buffer
         cost the 3D hybrid 8 % of its step). Called at a kernel's top level (its loops are then
         parallel tasks): the hybrid's particle step compacts in its own launch (:attr:`in_place`)."""
+        ti.loop_config(serialize=ti.static(light()))
         for u in range(self.units(b)):
             e, _, lo, hi = self.unit(b, u)
             c = 0
@@ -216,6 +217,7 @@ class ParticlePool:
                     r += 1
             self.kept[e] = k
             self.n[b, e] = k  # unit() now ends each member's last block at k
+        ti.loop_config(serialize=ti.static(light()))
         for u in range(self.ensemble * self.span[None]):  # each hole below k takes the tail of its rank
             e, _, lo, hi = self.unit(b, u)
             k = self.kept[e]
