@@ -34,6 +34,9 @@ def test_every_touch_is_counted_and_taichi_restored():
         v.to_numpy()  # a sync, 4 × 3 × 4 = 48 B
         ti.sync()
         assert (t.syncs, t.read, t.written) == (5, 144, 160)
+        _ = v[1]  # an element: its own type, 3 × 4 = 12 B (a Python number would say 8 each)
+        _ = ti.field(ti.i32, shape=2)[0]  # 4 B
+        assert (t.syncs, t.read) == (7, 160)
         t.reset()
         assert (t.syncs, t.read, t.written) == (0, 0, 0)
     assert (type(a).to_numpy, type(a).__getitem__, ti.sync) == before

@@ -15,6 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import taichi as ti
+from taichi.lang.util import to_numpy_type
 
 
 @dataclass
@@ -55,6 +56,10 @@ def counted() -> Iterator[Traffic]:
         t.syncs += 1
         t.read += np.asarray(out).nbytes
 
+    def element(out, field, *_):  # the field's own type: a Python number would count 8 bytes whatever it is
+        t.syncs += 1
+        t.read += np.size(out.to_numpy() if hasattr(out, "to_numpy") else out) * np.dtype(to_numpy_type(field.dtype)).itemsize
+
     def written(_out, _field, array, *_):
         t.written += np.asarray(array).nbytes
 
@@ -67,7 +72,7 @@ def counted() -> Iterator[Traffic]:
     matrix = importlib.import_module("taichi.lang.matrix")
     kernel_impl = importlib.import_module("taichi.lang.kernel_impl")
     patches = [(cls, name, count) for cls in (field.ScalarField, matrix.MatrixField)
-               for name, count in (("to_numpy", read), ("__getitem__", read), ("from_numpy", written))]
+               for name, count in (("to_numpy", read), ("__getitem__", element), ("from_numpy", written))]
     patches.append((kernel_impl.Kernel, "__call__", kernel))
     saved = [(cls, name, cls.__dict__.get(name)) for cls, name, _ in patches]  # None: inherited
     sync = ti.sync

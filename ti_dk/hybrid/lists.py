@@ -6,6 +6,7 @@ import math
 import taichi as ti
 
 from ..core.grid import DIRICHLET, SCAN_BLOCK, block_scan, column_hit, prefixed
+from ..methods.records import small
 
 
 @ti.data_oriented
@@ -34,7 +35,7 @@ class CellLists:
     def make(self) -> tuple[int, int]:
         """The lists from ``covered`` as it is; returns their lengths (8 bytes read back)."""
         self._make()
-        n_ring, n_cover = self.sizes.to_numpy()
+        n_ring, n_cover = small(self.sizes)
         return int(n_ring), int(n_cover)
 
     @ti.func

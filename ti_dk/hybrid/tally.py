@@ -6,6 +6,7 @@ import numpy as np
 import taichi as ti
 
 from ..core.grid import column_hit, row_cell, row_count
+from ..methods.records import small
 
 
 @ti.data_oriented
@@ -37,7 +38,7 @@ class Tally:
         ``Σ q V_c`` of the cells the move covers anew, how many cells it uncovers, and how many
         members' regions it changes, all members (32 bytes read back)."""
         self._sum(spde)
-        most, removed, gone, members = self.out.to_numpy()
+        most, removed, gone, members = small(self.out)
         return float(most), float(removed), int(gone), int(members)
 
     def per_cell(self, spde) -> np.ndarray:

@@ -20,6 +20,7 @@ import numpy as np
 import taichi as ti
 
 from ..core.grid import Grid, wrap
+from ..methods.records import small
 from .clustering import Box
 # tile side in cells where ``tile = 0``, by dimension (1D: the tags exactly), for a region from q̄ and
 # from each member's own density. From q̄, 2 in 2D (20 % fewer particles than with 4; 1 is no
@@ -52,7 +53,7 @@ class Tiles:
         """:meth:`_flag`, then its :attr:`counts` (one read of 12 bytes): the cells below
         ``threshold``, the tiles whose cover changed and the tiles flagged, all members."""
         self._flag(spde, region, threshold, keep, mean, guard)
-        return tuple(int(c) for c in self.counts.to_numpy())
+        return tuple(int(c) for c in small(self.counts))
 
     @ti.func
     def _content(self, spde: ti.template(), region: ti.template(), e, C, mean: ti.template()) -> ti.f64:
