@@ -5,7 +5,7 @@ import taichi as ti
 
 from ti_dk import load_scene
 from ti_dk.core.grid import (DIRICHLET, INTERIOR, NEUMANN, PERIODIC, SCAN_BLOCK, Grid, across, block_scan, cell_of,
-                            exclusive_scan, face_kind, numpy_dtype)
+                            exclusive_scan, face_kind, numpy_dtype, row_spread, spread)
 
 
 def test_geometry_of_an_anisotropic_2d_grid():
@@ -124,3 +124,20 @@ def test_block_scan_is_one_serial_pass(n):
     scan()
     assert np.array_equal(a.to_numpy(), np.concatenate([[0], np.cumsum(counts)[:-1]]))
     assert total[1] == counts.sum() and total[0] == 0
+
+
+@ti.kernel
+def _spreads(n: ti.template(), out: ti.template()):
+    for i in ti.static(range(len(n))):
+        out[i] = spread(n[i])
+
+
+def test_spread_gives_a_short_loop_enough_iterations_for_every_thread():
+    # a loop over n units made n · spread(n) iterations long: as few as make row_spread(1) (512 a
+    # thread on the CPU, where Taichi cuts a range into blocks of 512: 600 units ran 512 on one thread)
+    counts = (1, 100, 600, 1023, 1024, 5000, 10**6)
+    out = ti.field(ti.i32, shape=len(counts))
+    _spreads(counts, out)
+    least = row_spread(1)
+    for n, s in zip(counts, out.to_numpy()):
+        assert n * s >= least and (s == 1 or n * (s - 1) < least)

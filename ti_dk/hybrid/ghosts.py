@@ -6,7 +6,7 @@ import math
 import taichi as ti
 
 from ..core import rng
-from ..core.grid import cell_of
+from ..core.grid import cell_of, spread
 from ..methods.particles import Walker
 from .crossings import Crossings
 from .incell import InCell
@@ -171,7 +171,11 @@ class Sampler:
         vol = ti.static(self.grid.cell_volume)
         self.need[None] = 0
         self.clamped[None] = 0
-        for i in range(n_ring):
+        S = spread(n_ring)  # a few hundred ghost cells would run on one thread (grid.spread)
+        for v in range(n_ring * S):
+            if v % S != 0:
+                continue
+            i = v // S
             J, inside = self.region.ring_cell(i)
             C = ti.Vector([J[a + 1] for a in ti.static(range(self.dim))])
             lam = 0.0

@@ -6,7 +6,7 @@ import time
 
 import taichi as ti
 
-from ..core.grid import DIRICHLET, across, cell_of, exclusive_scan, light
+from ..core.grid import DIRICHLET, across, cell_of, exclusive_scan, light, spread
 from ..methods.fv import SPDESolver
 from ..methods.particles import Walker
 from .ghosts import Sampler
@@ -80,8 +80,12 @@ class Coupling:
         compaction hold this sub-step's ghosts, which the fill walked, keeping only those that enter
         (:meth:`Sampler.sample`): those are only accounted for, with no random numbers drawn."""
         self.clamped[None] += self.sampler.clamped[None]  # the clamped steps of the ghosts that entered
-        for u in range(pool.units(cur)):
-            e, U, lo, mid, hi = pool.split_unit(cur, u)
+        units = pool.units(cur)
+        S = spread(units)  # a few hundred units would run on one thread (grid.spread)
+        for v in range(units * S):
+            if v % S != 0:
+                continue
+            e, U, lo, mid, hi = pool.split_unit(cur, v // S)
             for k in range(self.walker.rounds(lo, mid)):
                 for I, ident, x, y, alive, clamped, own in ti.static(
                         self.walker.lanes_at(pool, cur, U, e, lo, mid, k, ti.u32(step))):
