@@ -196,7 +196,7 @@ class Coupling:
         this sub-step's ghosts, so only those are read. On the ``first`` sub-step a ring cell takes
         S1 (:meth:`_s1`) first; :meth:`_sync` clears its ``entered``."""
         vol = ti.static(self.grid.cell_volume)
-        ti.loop_config(serialize=ti.static(light()))
+        ti.loop_config(serialize=ti.static(light(self.dim)))
         for i in range(n_ring):
             J, inside = self.region.ring_cell(i)
             if inside:
@@ -206,7 +206,7 @@ class Coupling:
                 cap = ti.cast(ti.max(room, 0.0), ti.i32)
                 self.cap[J] = cap
                 self.dN[J] -= ti.min(ti.cast(ti.math.popcnt(self.entered[J]), ti.i32), cap)
-        ti.loop_config(serialize=ti.static(light()))
+        ti.loop_config(serialize=ti.static(light(self.dim)))
         for u in range(pool.new_units(cur)):
             e, U, lo, hi = pool.new_unit(cur, u)
             for p in range(lo, hi):
@@ -247,7 +247,7 @@ class Coupling:
         """Step 4 (``last``; ``n_cover`` is 0 on the other sub-steps): covered cells take their counts;
         ring cells add S2, ΔN / V_c (eq. 12). Every sub-step: a ring cell's ``entered`` is cleared."""
         vol = ti.static(self.grid.cell_volume)
-        ti.loop_config(serialize=ti.static(light()))
+        ti.loop_config(serialize=ti.static(light(self.dim)))
         for i in range(n_cover + n_ring):  # one loop: covered cells, then ring cells
             if i < n_cover:
                 self._take_count(self.region.covered_cell(i))

@@ -26,6 +26,7 @@ Modules: :mod:`.slots` (the shared rules: slot counts, capacity, checkpoint orde
 :mod:`.block_memory` and :mod:`.block_moves`).
 """
 
+from ..core.grid import light
 from .blocks import BlockPool
 from .flat import ParticlePool
 from .slots import BLOCK, LAYOUTS, canonical, capacity, total
@@ -37,4 +38,4 @@ def make(layout: str, grid, ensemble: int, real):
     """An empty hybrid pool of ``layout`` (one of :data:`LAYOUTS`) for ``grid``."""
     if layout == "pointer":
         return BlockPool(grid, ensemble, 1, real)
-    return ParticlePool(ensemble, 1, grid.dim, real)
+    return ParticlePool(ensemble, 1, grid.dim, real, light=light(grid.dim))

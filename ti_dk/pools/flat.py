@@ -3,7 +3,7 @@
 import numpy as np
 import taichi as ti
 
-from ..core.grid import exclusive_scan, light, numpy_dtype
+from ..core.grid import exclusive_scan, numpy_dtype
 from .slots import BLOCK, canonical, capacity
 
 
@@ -18,9 +18,11 @@ class ParticlePool:
     member that needs more than ``capacity`` slots gets a larger pool from :meth:`grown`.
     """
 
-    def __init__(self, ensemble: int, capacity: int, dim: int, real, buffers: int = 2, ids: bool = True):
+    def __init__(self, ensemble: int, capacity: int, dim: int, real, buffers: int = 2, ids: bool = True,
+                 light: bool = False):
         self.ensemble, self.capacity, self.dim, self.real = ensemble, capacity, dim, real
         self.buffers, self.ids = buffers, ids
+        self.light = light  # the compaction's loops are short: serial tasks (the hybrid's pool: core.grid.light)
         self.cell_ordered = False  # slots are not grouped by cell (the hybrid sorts them at regrids)
         self.by_cell = False  # plans its room per member: grown(capacity(the most any member needs)) is fitted()
         self.in_place = True  # compacts in place (compact_here), never growing: a kernel that marks may compact too
@@ -52,7 +54,7 @@ class ParticlePool:
         if capacity <= self.capacity:
             return self
         capacity = max(capacity + capacity // 4, 2 * self.capacity, planned)
-        new = ParticlePool(self.ensemble, capacity, self.dim, self.real, self.buffers, self.ids)
+        new = ParticlePool(self.ensemble, capacity, self.dim, self.real, self.buffers, self.ids, self.light)
         new.load(self.x.to_numpy(), self.pid.to_numpy() if self.ids else None, self.n.to_numpy())
         new.kept.from_numpy(self.kept.to_numpy())
         return new
@@ -198,7 +200,7 @@ class ParticlePool:
         or entered the region, not all of them (a copy of every particle to the other buffer
         cost the 3D hybrid 8 % of its step). Called at a kernel's top level (its loops are then
         parallel tasks): the hybrid's particle step compacts in its own launch (:attr:`in_place`)."""
-        ti.loop_config(serialize=ti.static(light()))
+        ti.loop_config(serialize=ti.static(self.light))
         for u in range(self.units(b)):
             e, _, lo, hi = self.unit(b, u)
             c = 0
@@ -217,7 +219,7 @@ class ParticlePool:
                     r += 1
             self.kept[e] = k
             self.n[b, e] = k  # unit() now ends each member's last block at k
-        ti.loop_config(serialize=ti.static(light()))
+        ti.loop_config(serialize=ti.static(self.light))
         for u in range(self.ensemble * self.span[None]):  # each hole below k takes the tail of its rank
             e, _, lo, hi = self.unit(b, u)
             k = self.kept[e]
