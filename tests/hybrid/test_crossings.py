@@ -49,8 +49,8 @@ def drawn():
         C, tilt = ti.Vector([c0, c1]), ti.Vector([b0, b1])
         near = s.regions.near(0, C)
         for i in range(N):
-            _n, total, lo, stay, hi = cr.count(m, near, C, tilt, ti.u32(0))
-            z, cl = cr.entrant(0, C, ti.u32(i), 4, near, tilt, lo, stay, hi, total)
+            _n, run = cr.count(m, near, C, tilt, ti.u32(0))
+            z, cl = cr.entrant(0, C, ti.u32(i), 4, near, tilt, run)
             y[i, 0], y[i, 1], clamped[i] = z[0] / hx, z[1] / hy, cl
         for i in range(M):
             word = rng.philox4x32(ti.math.uvec4(ti.u32(i), 0, 0, 0), ti.math.uvec2(1, 2))[0]

@@ -130,13 +130,13 @@ class Sampler:
         if ti.static(walked):
             clamped, top = 0, 0  # clamped steps of the entrants; slots used
             if ti.static(self.crossings.direct):
-                n, total, lo, stay, hi = self.crossings.count(m, near, C, tilt, bits[1])
+                n, run = self.crossings.count(m, near, C, tilt, bits[1])
                 if n > 0:
                     base = pool.append(buf, U, n)
                     top = base + n
                     for k in range(n):
                         id0 = (lin << ti.u32(self.id_bits)) | ti.u32(k)
-                        y, cl = self.crossings.entrant(e, C, id0, step, near, tilt, lo, stay, hi, total)
+                        y, cl = self.crossings.entrant(e, C, id0, step, near, tilt, run)
                         clamped += cl
                         self._store(pool, buf, U, base + k, id0, y, birth)
             else:
