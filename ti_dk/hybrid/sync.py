@@ -77,8 +77,7 @@ class Coupling:
     def _walk(self, pool: ti.template(), cur, step, last):
         """Step 3 (one particle sub-step): walk, mark to keep what ends in the region, add to ΔN; on the
         ``last`` sub-step count the particles per covered cell. The slots appended since the last
-        compaction hold this sub-step's ghosts, which the fill walked, keeping only those that enter
-        (:meth:`Sampler.sample`): those are only accounted for, with no random numbers drawn."""
+        compaction hold this sub-step's entrants, placed by the fill (:meth:`Sampler.sample`): only accounted for."""
         self.clamped[None] += self.sampler.clamped[None]  # the clamped steps of the ghosts that entered
         units = pool.units(cur)
         S = spread(units)  # a few hundred units would run on one thread (grid.spread)
@@ -138,13 +137,10 @@ class Coupling:
 
     @ti.kernel
     def sort(self, pool: ti.template(), b: ti.i32):
-        """Compact buffer ``b`` of a flat pool (:class:`pools.ParticlePool`) into the other like
-        its ``compact`` (the marked slots), but in cell order (a counting sort: counts per cell in ``count``, a
-        scan over rows of cells, a scatter). A particle's random numbers are keyed on its identity,
-        so the order changes no result; it keeps the walk's cell lookups and ``count`` updates
-        local, where the order left by many steps of compaction and appended ghosts scatters them
-        over the grid (measured: the walk is faster with the sort).
-        A pointer pool keeps its particles by block of cells and needs no sort."""
+        """Compact buffer ``b`` of a flat pool (:class:`pools.ParticlePool`) into the other, in cell
+        order (a counting sort: counts per cell in ``count``, a scan over rows, a scatter). The order
+        changes no result (a particle's numbers are keyed on its identity) but keeps the walk's
+        lookups local (measured faster). A pointer pool keeps its particles by block: no sort."""
         E, L, rows = ti.static(self.spde.ensemble, self.n[-1], math.prod(self.n[:-1]))
         for u in range(pool.units(b)):
             e, U, lo, hi = pool.unit(b, u)
@@ -186,15 +182,12 @@ class Coupling:
     @ti.func
     def _cap(self, pool: ti.template(), cur, step, first, last, n_ring):
         """Let at most ``⌊q_I V_c + ΔN_I⌋`` of the ghosts of cell ``I`` enter the region in this
-        sub-step: the content the SPDE left in it (after S1) plus what the region gave it so far.
-        Without this cap a ghost cell holding ``ℓ + α`` particles, ``ℓ + 1`` ghosts of which all
-        walk in while its SPDE fluxes also carry content away, goes negative (it did in the
-        default ellipse2d run, in cells holding a few particles). The ghosts
-        that enter are those of lowest index among the ones that walked in, so the result does
-        not depend on thread order; cells with more than 64 ghosts are not capped (64 ghosts all
-        walking in does not happen). Only the slots appended since the last compaction can hold
-        this sub-step's ghosts, so only those are read. On the ``first`` sub-step a ring cell takes
-        S1 (:meth:`_s1`) first; :meth:`_sync` clears its ``entered``."""
+        sub-step: the content the SPDE left in it (after S1) plus what the region gave it so far
+        (else a ghost cell of ``ℓ + α`` particles whose ``ℓ + 1`` ghosts all walk in while its SPDE
+        fluxes carry content away goes negative: it did in ellipse2d). Those of lowest index enter,
+        whatever the thread order; a cell of over 64 ghosts is not capped (64 all walking in does
+        not happen). Only the slots appended since the last compaction are read. On the ``first``
+        sub-step a ring cell takes S1 (:meth:`_s1`) first; :meth:`_sync` clears its ``entered``."""
         vol = ti.static(self.grid.cell_volume)
         ti.loop_config(serialize=ti.static(light(self.dim)))
         for i in range(n_ring):
