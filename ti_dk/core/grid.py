@@ -88,8 +88,9 @@ def light(dim: int) -> bool:
     CPU, where every parallel loop of a launch wakes the pool's threads and waits for them, about
     25 µs on the project's 2 cores whatever the loop's length (an empty one too), and a serial task
     costs about 1 µs. So in 1D and 2D, where those loops are short (ellipse2d: 400–800 ghost cells,
-    4–17 k covered, 20–90 k particles): the step 6 % faster side by side. In 3D they are ten times
-    longer (sphere3d 64³: serial made the step 3 % slower), and a GPU keeps every loop parallel.
+    4–17 k covered, 20–90 k particles; at 300 per cell the particle step's loops but the walk took
+    250–285 µs a step, not 355–380). In 3D they are ten times longer (sphere3d 64³: serial made
+    the step 3 % slower), and a GPU keeps every loop parallel.
     Evaluated when a kernel compiles (after ``ti.init``)."""
     return ti.lang.impl.current_cfg().arch == ti.cpu and dim <= 2
 

@@ -147,8 +147,8 @@ class Crossings:
     def _running(self, near, lo, stay, hi):
         """The running sum of :meth:`_weight` over the covered offsets ``near`` in ascending order: entry
         ``o`` holds it up to and including offset ``o`` (the last entry: the total). Made once a ghost
-        cell, so that each entrant finds its offset by compares alone (:meth:`_pick`): the weights
-        made again for every entrant cost the 3D fill a quarter of its time."""
+        cell, so that each entrant finds its offset by compares alone (:meth:`_pick`): made again for
+        every entrant, the weights made the 3D fill 12 % slower (sphere3d 64³, 300 per cell)."""
         run = ti.Vector.zero(ti.f64, 3**self.dim)
         total = 0.0
         for o in ti.static(range(3**self.dim)):  # unrolled: the vector's entries are registers
