@@ -185,9 +185,8 @@ class Coupling:
         sub-step: the content the SPDE left in it (after S1) plus what the region gave it so far
         (else a ghost cell of ``ℓ + α`` particles whose ``ℓ + 1`` ghosts all walk in while its SPDE
         fluxes carry content away goes negative: it did in ellipse2d). Those of lowest index enter,
-        whatever the thread order; a cell of over 64 ghosts is not capped (64 all walking in does
-        not happen). Only the slots appended since the last compaction are read. On the ``first``
-        sub-step a ring cell takes S1 (:meth:`_s1`) first; :meth:`_sync` clears its ``entered``."""
+        whatever the thread order; a cell of over 64 ghosts is not capped (never all walk in). Only
+        the new slots are read. On the ``first`` sub-step a ring cell takes S1 (:meth:`_s1`) first."""
         vol = ti.static(self.grid.cell_volume)
         ti.loop_config(serialize=ti.static(light(self.dim)))
         for i in range(n_ring):
@@ -199,8 +198,9 @@ class Coupling:
                 cap = ti.cast(ti.max(room, 0.0), ti.i32)
                 self.cap[J] = cap
                 self.dN[J] -= ti.min(ti.cast(ti.math.popcnt(self.entered[J]), ti.i32), cap)
+        units = pool.new_units(cur)  # (a serial loop: a loop_config before it would be its, not the next's)
         ti.loop_config(serialize=ti.static(light(self.dim)))
-        for u in range(pool.new_units(cur)):
+        for u in range(units):
             e, U, lo, hi = pool.new_unit(cur, u)
             for p in range(lo, hi):
                 I = pool.index(cur, U, p)

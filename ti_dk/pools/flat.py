@@ -200,8 +200,9 @@ class ParticlePool:
         or entered the region, not all of them (a copy of every particle to the other buffer
         cost the 3D hybrid 8 % of its step). Called at a kernel's top level (its loops are then
         parallel tasks): the hybrid's particle step compacts in its own launch (:attr:`in_place`)."""
+        units = self.units(b)  # (a serial loop: a loop_config before it would be its, not the next's)
         ti.loop_config(serialize=ti.static(self.light))
-        for u in range(self.units(b)):
+        for u in range(units):
             e, _, lo, hi = self.unit(b, u)
             c = 0
             for p in range(lo, hi):
