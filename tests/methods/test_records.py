@@ -35,5 +35,8 @@ def test_the_record_is_numpys_sums(cells):
 def test_scalars_are_read_together_as_they_are():
     a, b, c = ti.field(ti.f64, shape=()), ti.field(ti.f32, shape=()), ti.field(ti.i64, shape=())
     a[None], b[None], c[None] = 1 / 3, 0.1, 2**52 + 1
-    values = Scalars([a, b, c]).read()
+    scalars = Scalars([a, b, c])
+    values = scalars.read()  # on the CPU: read one by one
     assert values[0] == a[None] and values[1] == b[None] and values[2] == 2**52 + 1  # exact
+    scalars._pack()  # a GPU's path: one kernel packs them (the class must be data-oriented for it)
+    assert np.array_equal(scalars.out.to_numpy(), values)

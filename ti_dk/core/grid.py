@@ -82,6 +82,12 @@ def numpy_dtype(real):
     return np.float32 if real == ti.f32 else np.float64
 
 
+def on_cpu() -> bool:
+    """Whether Taichi runs on the CPU (after ``ti.init``): where a parallel loop's start and a small
+    copy back cost more than the work they save (:func:`light`, :func:`~ti_dk.methods.records.small`)."""
+    return ti.lang.impl.current_cfg().arch == ti.cpu
+
+
 def light(dim: int) -> bool:
     """Whether the *light* loops of a ``dim``-dimensional hybrid (over its ghost cells, covered cells,
     or pool slots) run as serial tasks (``ti.loop_config(serialize=ti.static(light(d)))``): on the
@@ -92,7 +98,7 @@ def light(dim: int) -> bool:
     250–285 µs a step, not 355–380). In 3D they are ten times longer (sphere3d 64³: serial made
     the step 3 % slower), and a GPU keeps every loop parallel.
     Evaluated when a kernel compiles (after ``ti.init``)."""
-    return ti.lang.impl.current_cfg().arch == ti.cpu and dim <= 2
+    return on_cpu() and dim <= 2
 
 
 def row_spread(rows: int) -> int:

@@ -6,7 +6,7 @@ diagnostics in one read."""
 import numpy as np
 import taichi as ti
 
-from ..core.grid import Grid, prefixed, row_cell, row_count
+from ..core.grid import Grid, on_cpu, prefixed, row_cell, row_count
 
 RECORD = ("mass", "negative_cells", "particles", "region_cells")  # the fixed columns, then one per set
 
@@ -83,16 +83,16 @@ class MemberSums:
                 self.out[e, c] = total
 
 
-@ti.data_oriented
 def small(field) -> np.ndarray:
     """The values of a small 1-d field on the host: on the CPU one element at a time (a few µs
     each, where ``to_numpy`` launches a parallel copy: about 90 µs on 2 cores), elsewhere by one
     ``to_numpy`` (one sync, where every element read would be one)."""
-    if ti.lang.impl.current_cfg().arch == ti.cpu:
+    if on_cpu():
         return np.array([field[i] for i in range(field.shape[0])])
     return field.to_numpy()
 
 
+@ti.data_oriented
 class Scalars:
     """0-d fields read back together: on a GPU one kernel copies them (as f64: exact for the counts,
     below 2^53) into one small array, read once, instead of one sync and one launch per field; on
@@ -104,7 +104,7 @@ class Scalars:
 
     def read(self) -> np.ndarray:
         """The fields' values now, in order (float64)."""
-        if ti.lang.impl.current_cfg().arch == ti.cpu:
+        if on_cpu():
             return np.array([f[None] for f in self.fields], dtype=np.float64)
         self._pack()
         return self.out.to_numpy()

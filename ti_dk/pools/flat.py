@@ -199,7 +199,7 @@ class ParticlePool:
         on its slot, so the order changes no result; a step then moves the particles that left
         or entered the region, not all of them (a copy of every particle to the other buffer
         cost the 3D hybrid 8 % of its step). Called at a kernel's top level (its loops are then
-        parallel tasks): the hybrid's particle step compacts in its own launch (:attr:`in_place`)."""
+        tasks of their own): the hybrid compacts in its particle step's launch (:attr:`in_place`)."""
         units = self.units(b)  # (a serial loop: a loop_config before it would be its, not the next's)
         ti.loop_config(serialize=ti.static(self.light))
         for u in range(units):
