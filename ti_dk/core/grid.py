@@ -119,7 +119,7 @@ def row_spread(rows: int) -> int:
 @ti.func
 def spread(n):
     """:func:`row_spread` for a count ``n`` known only when the kernel runs (a pool's units, the ring's
-    cells): loop over ``n · spread(n)`` iterations and work where ``i % spread(n) == 0``. A walk of
+    cells): loop over ``ti.ndrange(n, spread(n))`` and work where the second index is 0. A walk of
     20,000 particles (600 units) ran 512 units on one thread and 88 on the other."""
     return ti.max(1, (ti.static(row_spread(1)) + n - 1) // ti.max(n, 1))
 

@@ -171,11 +171,9 @@ class Sampler:
         vol = ti.static(self.grid.cell_volume)
         self.need[None] = 0
         self.clamped[None] = 0
-        S = spread(n_ring)  # a few hundred ghost cells would run on one thread (grid.spread)
-        for v in range(n_ring * S):
-            if v % S != 0:
+        for i, s in ti.ndrange(n_ring, spread(n_ring)):  # a few hundred ghost cells would run on one thread
+            if s != 0:
                 continue
-            i = v // S
             J, inside = self.region.ring_cell(i)
             C = ti.Vector([J[a + 1] for a in ti.static(range(self.dim))])
             lam = 0.0

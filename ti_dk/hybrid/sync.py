@@ -80,11 +80,10 @@ class Coupling:
         compaction hold this sub-step's entrants, placed by the fill (:meth:`Sampler.sample`): only accounted for."""
         self.clamped[None] += self.sampler.clamped[None]  # the clamped steps of the ghosts that entered
         units = pool.units(cur)
-        S = spread(units)  # a few hundred units would run on one thread (grid.spread)
-        for v in range(units * S):
-            if v % S != 0:
+        for u, s in ti.ndrange(units, spread(units)):  # a few hundred units would run on one thread
+            if s != 0:
                 continue
-            e, U, lo, mid, hi = pool.split_unit(cur, v // S)
+            e, U, lo, mid, hi = pool.split_unit(cur, u)
             for k in range(self.walker.rounds(lo, mid)):
                 for I, ident, x, y, alive, clamped, own in ti.static(
                         self.walker.lanes_at(pool, cur, U, e, lo, mid, k, ti.u32(step))):
